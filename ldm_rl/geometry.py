@@ -218,61 +218,59 @@ def _quarter_turn(a: Tensor, b: Tensor, q: Tensor):
 def _rotate_offsets(u: Tensor, v: Tensor, angles: Tensor, dtype: torch.dtype):
     """R(θ)·(u, v) for a grid (u, v) ``[h, w]`` and angles ``[*B]`` -> two ``[*B, h, w]`` tensors of ``dtype``."""
     q, c, s = _quarter_split(angles)
-    c, s, q = c[..., None, None], s[..., None, None], q[..., None, None]
-    u64, v64 = u.to(torch.float64), v.to(torch.float64)
-    a = (c * u64 - s * v64).to(dtype)
-    b = (s * u64 + c * v64).to(dtype)
-    return _quarter_turn(a, b, q)
+    c, s, q = c.to(dtype)[..., None, None], s.to(dtype)[..., None, None], q[..., None, None]
+    u, v = u.to(dtype), v.to(dtype)
+    return _quarter_turn(c * u - s * v, s * u + c * v, q)
 
 
 def _unrotate_offsets(du: Tensor, dv: Tensor, angles: Tensor, dtype: torch.dtype):
-    """R(−θ)·(du, dv) for integer offsets ``[*B, h, w]`` (float, exact) -> two ``[*B, h, w]`` of ``dtype``."""
+    """R(−θ)·(du, dv) for whole-pixel offsets ``[h, w]`` and angles ``[*B]`` -> two ``[*B, h, w]`` of ``dtype``."""
     q, c, s = _quarter_split(angles)
-    c, s, q = c[..., None, None], s[..., None, None], q[..., None, None]
-    a, b = _quarter_turn(du, dv, (4 - q).remainder(4))  # undo the quarter turns exactly first
-    a64, b64 = a.to(torch.float64), b.to(torch.float64)
-    return (c * a64 + s * b64).to(dtype), (-s * a64 + c * b64).to(dtype)
-
-
-def _gather(images: Tensor, batch: torch.Size, rows: Tensor, cols: Tensor) -> Tensor:
-    """Read ``images [*Bi, C, H, W]`` (Bi broadcastable to ``batch``) at int64 ``rows, cols [*batch, P]``.
-
-    Returns ``[*batch, C, P]``; pixels outside the image read as 0.
-    """
-    c, h, w = images.shape[-3:]
-    src_batch = images.shape[:-3]
-    flat = images.reshape(-1, c, h * w).transpose(0, 1).reshape(c, -1)  # [C, M·H·W]
-    src = torch.arange(max(1, math.prod(src_batch)), device=images.device).reshape(src_batch)
-    src = src.expand(batch).reshape(-1, 1)  # [N, 1]: which source image each output reads
-    valid = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-    idx = (rows.clamp(0, h - 1) * w + cols.clamp(0, w - 1)).reshape(src.shape[0], -1) + src * (h * w)
-    out = flat[:, idx.reshape(-1)].reshape(c, idx.shape[0], idx.shape[1]).transpose(0, 1)
-    out = out.reshape(*batch, c, idx.shape[1])
-    return torch.where(valid.unsqueeze(-2), out, torch.zeros((), dtype=out.dtype, device=out.device))
+    c, s, q = c.to(dtype)[..., None, None], s.to(dtype)[..., None, None], q[..., None, None]
+    a, b = _quarter_turn(du.to(dtype), dv.to(dtype), (4 - q).remainder(4))  # exact: undo the quarter turns first
+    return c * a + s * b, c * b - s * a
 
 
 def _sample(images: Tensor, batch: torch.Size, rows0: Tensor, cols0: Tensor, wr: Tensor, wc: Tensor, mode: str) -> Tensor:
-    """Sample ``images`` at integer anchors ``(rows0, cols0) [*batch, 1, 1]`` plus float offsets ``(wr, wc) [*batch, h, w]``.
+    """Sample ``images [*Bi, C, H, W]`` at integer anchors ``(rows0, cols0)`` plus offsets ``(wr, wc) [*batch, h, w]``.
 
-    Returns ``[*batch, C, h, w]``. Weights use the negation-symmetric form ``1 − |w − n|``.
+    ``Bi`` broadcasts against ``batch`` without copies; anchors broadcast against the offsets. Pixels
+    outside the image read as 0 (the source is zero-padded once, just enough for the reads). Returns
+    ``[*batch, C, h, w]``. Bilinear weights use the negation-symmetric form ``1 − |w − n|`` and the
+    corner terms are summed diagonal by diagonal, which a quarter turn leaves bit-identical.
     """
+    c, height, width = images.shape[-3:]
     h, w = wr.shape[-2:]
-    flat = lambda t: t.reshape(*batch, h * w)  # noqa: E731
+    n = math.prod(batch)
     if mode == "nearest":
-        r = rows0 + torch.round(wr).long()
-        c = cols0 + torch.round(wc).long()
-        return _gather(images, batch, flat(r), flat(c)).reshape(*batch, images.shape[-3], h, w)
-    nr, nc = torch.floor(wr), torch.floor(wc)
-    r0, c0 = rows0 + nr.long(), cols0 + nc.long()
+        r0, c0, reach = rows0 + torch.round(wr).long(), cols0 + torch.round(wc).long(), 0
+    else:
+        nr, nc = torch.floor(wr), torch.floor(wc)
+        r0, c0, reach = rows0 + nr.long(), cols0 + nc.long(), 1
+    r0, c0 = r0.expand(*batch, h, w).reshape(n, h * w), c0.expand(*batch, h, w).reshape(n, h * w)
+    top, left = max(0, -int(r0.min())), max(0, -int(c0.min()))
+    bottom, right = max(0, int(r0.max()) + reach - height + 1), max(0, int(c0.max()) + reach - width + 1)
+    if top or left or bottom or right:
+        images = torch.nn.functional.pad(images, (left, right, top, bottom))
+    hp, wp = images.shape[-2:]
+    src_batch = images.shape[:-3]
+    flat = images.reshape(-1, c, hp * wp).transpose(0, 1).reshape(c, -1)  # [C, M·Hp·Wp]
+    src = torch.arange(max(1, math.prod(src_batch)), device=images.device).reshape(src_batch)
+    base = src.expand(batch).reshape(n, 1) * (hp * wp) + (r0 + top) * wp + (c0 + left)  # [N, h·w]
+
+    def read(shift: int) -> Tensor:  # [*batch, C, h·w]
+        return flat[:, (base + shift).reshape(-1)].reshape(c, n, h * w).transpose(0, 1).reshape(*batch, c, h * w)
+
+    if mode == "nearest":
+        return read(0).reshape(*batch, c, h, w)
     wr0, wr1 = 1 - (wr - nr).abs(), 1 - (wr - (nr + 1)).abs()
     wc0, wc1 = 1 - (wc - nc).abs(), 1 - (wc - (nc + 1)).abs()
 
-    def term(dr, dc, a, b):
-        return _gather(images, batch, flat(r0 + dr), flat(c0 + dc)) * flat(a * b).unsqueeze(-2)
+    def term(shift: int, a: Tensor, b: Tensor) -> Tensor:
+        return read(shift) * (a * b).expand(*batch, h, w).reshape(*batch, 1, h * w)
 
-    # diagonals first: a quarter turn swaps the two diagonals, so the float sum is order-invariant
-    out = (term(0, 0, wr0, wc0) + term(1, 1, wr1, wc1)) + (term(0, 1, wr0, wc1) + term(1, 0, wr1, wc0))
-    return out.reshape(*batch, images.shape[-3], h, w)
+    out = (term(0, wr0, wc0) + term(wp + 1, wr1, wc1)) + (term(1, wr0, wc1) + term(wp, wr1, wc0))
+    return out.reshape(*batch, c, h, w)
 
 
 # --------------------------------------------------------------------------------------------
@@ -383,18 +381,26 @@ def paste(images: Tensor, patches: Tensor, centers: Tensor, angles, mode: str = 
     angles = _check_angles(angles, images.device)
     batch = _batch_shape(images.shape[:-3], patches.shape[:-3], centers.shape[:-1], angles.shape, what="images, patches, centers, angles")
     dtype = images.dtype if images.is_floating_point() else torch.float32
-    rows = torch.arange(h, device=images.device, dtype=dtype)
-    cols = torch.arange(w, device=images.device, dtype=dtype)
-    du = rows[:, None] - centers[..., 0].expand(batch)[..., None, None].to(dtype)  # exact small ints
-    dv = cols[None, :] - centers[..., 1].expand(batch)[..., None, None].to(dtype)
-    su, sv = _unrotate_offsets(du, dv, angles.expand(batch), dtype)
-    su, sv = su + d // 2, sv + d // 2  # patch coordinates
-    inside = (su >= -0.5) & (su < d - 0.5) & (sv >= -0.5) & (sv < d - 0.5)  # [*B, H, W]
+    # only a window around each action can change: the rotated square's bounding box, ±(d/√2 + 1) px
+    m = math.ceil(d * math.sqrt(0.5)) + 1
+    offsets = torch.arange(-m, m + 1, device=images.device)
+    su, sv = _unrotate_offsets(offsets[:, None], offsets[None, :], angles.expand(batch), dtype)
+    su, sv = su + d // 2, sv + d // 2  # patch coordinates of each window pixel, [*B, n, n]
+    inside = (su >= -0.5) & (su < d - 0.5) & (sv >= -0.5) & (sv < d - 0.5)
     # clamped into the patch, a coordinate on the last pixel gives its outer neighbour weight 0, so
     # bilinear reads never blend in zero padding (border clamping)
     zero = torch.zeros((), dtype=torch.long, device=images.device)
     values = _sample(patches, batch, zero, zero, su.clamp(0, d - 1), sv.clamp(0, d - 1), mode)
-    return torch.where(inside.unsqueeze(-3), values, images.expand(*batch, *images.shape[-3:]))
+    rows = centers[..., 0].expand(batch)[..., None, None] + offsets[:, None]
+    cols = centers[..., 1].expand(batch)[..., None, None] + offsets[None, :]
+    write = inside & (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    # scatter into the flattened scenes; window pixels that must not be written go to a dummy slot
+    n_out, c = math.prod(batch), images.shape[-3]
+    target = torch.where(write, rows * w + cols, h * w).reshape(n_out, 1, -1).expand(n_out, c, -1)
+    scenes = images.expand(*batch, *images.shape[-3:]).reshape(n_out, c, h * w)
+    scenes = torch.cat((scenes, scenes.new_zeros(n_out, c, 1)), -1)
+    out = scenes.scatter(-1, target, values.reshape(n_out, c, -1))
+    return out[..., : h * w].reshape(*batch, c, h, w)
 
 
 def center_crop(patches: Tensor, size: int) -> Tensor:
