@@ -1,0 +1,1 @@
+"""Data: expert demonstrations (``ldm_rl.data.demos``)."""

@@ -1,0 +1,132 @@
+"""Bin packing: put 8 blocks of five shapes into a bin, keeping the pile low.
+
+Reward (the paper's version): 0 on every intermediate step (we drop the anchor's +0.1 bonus for
+ending a step holding an object, which rewards picking rather than packing), and on the terminal
+step (every block's centre inside the bin, hand empty) ``100 · (bin_height − pile_top)`` with
+``pile_top`` the highest point of any block in metres (AABB top), so roughly −2 … +5; it is
+negative when the pile sticks out of the bin.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ldm_rl.envs.base import PickPlaceEnv, SpawnError, PrimitiveTarget
+from ldm_rl.envs.objects import BIN_BLOCKS, ContainerSpec, add_container, spawn
+
+__all__ = ["BinPackingEnv", "BIN"]
+
+BIN = ContainerSpec(inner_x=0.18, inner_y=0.14, height=0.1)
+BIN_MARGIN = 0.055  # m between the bin's outer walls and spawned block centres (open fingers reach 4.5 cm)
+BLOCK_DISTANCE = 0.085  # m between spawned block centres
+FINGER_ZONE = 0.025  # m beyond the held block (along the closing direction) the fingers need
+GRID_STEP = 0.005  # m between candidate place positions
+
+
+class BinPackingEnv(PickPlaceEnv):
+    """Terminates when all blocks are in the bin; reward ``100·(bin height − pile top)`` then."""
+
+    max_height = 0.15
+    pick_depth = 0.012
+
+    def __init__(self, num_objects: int = 8, **kwargs):
+        super().__init__(num_objects, **kwargs)
+        self.bin_xy = np.zeros(2)
+        self.bin_yaw = 0.0
+
+    # --- bin frame -------------------------------------------------------------------------------
+    def _to_bin(self, xy: np.ndarray) -> np.ndarray:
+        c, s = math.cos(self.bin_yaw), math.sin(self.bin_yaw)
+        d = np.asarray(xy)[..., :2] - self.bin_xy
+        return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+
+    def _from_bin(self, uv: np.ndarray) -> np.ndarray:
+        c, s = math.cos(self.bin_yaw), math.sin(self.bin_yaw)
+        return self.bin_xy + np.stack([c * uv[..., 0] - s * uv[..., 1], s * uv[..., 0] + c * uv[..., 1]], -1)
+
+    def _in_bin(self, xy: np.ndarray) -> bool:
+        u, v = self._to_bin(xy)
+        return abs(u) < BIN.inner_x / 2 and abs(v) < BIN.inner_y / 2
+
+    # --- scene -----------------------------------------------------------------------------------
+    def _build_scene(self, rng: np.random.Generator) -> None:
+        outer = np.array([BIN.inner_x / 2 + 2 * BIN.wall, BIN.inner_y / 2 + 2 * BIN.wall])
+        (self.bin_xy,) = self._sample_positions(rng, 1, padding=float(np.hypot(*outer)), min_distance=0.0)
+        self.bin_yaw = float(rng.uniform(0, math.pi))
+        add_container(self.sim, BIN, *self.bin_xy, self.bin_yaw)
+        ws, placed = self.workspace, []
+        lo, hi = 0.035, ws.size - 0.035
+        for _ in range(self.num_objects):
+            for _ in range(200):
+                p = np.array([ws.x_min, ws.y_min]) + rng.uniform(lo, hi, size=2)
+                away = np.any(np.abs(self._to_bin(p)) > outer + BIN_MARGIN)
+                if away and all(np.linalg.norm(p - q) > BLOCK_DISTANCE for q in placed):
+                    placed.append(p)
+                    break
+            else:
+                raise SpawnError("no room for the blocks")
+        shapes = rng.permutation(np.resize(np.arange(len(BIN_BLOCKS)), self.num_objects))
+        for p, k in zip(placed, shapes):
+            spawn(self.sim, BIN_BLOCKS[k], p[0], p[1], rng.uniform(0, 2 * math.pi))
+
+    def _is_success(self) -> bool:
+        return all(self._in_bin(self.sim.pose(o.body)[0]) for o in self.sim.objects)
+
+    def pile_top(self) -> float:
+        """Highest point of any block, m."""
+        return float(max(self.sim.aabb(o.body)[1][2] for o in self.sim.objects))
+
+    def _reward(self, success: bool, invalid: str) -> float:
+        return 100.0 * (BIN.height - self.pile_top()) if success else 0.0
+
+    # --- expert ----------------------------------------------------------------------------------
+    def expert_target(self) -> PrimitiveTarget:
+        """Pick the largest block outside the bin; place it where it ends lowest (fingers free)."""
+        held = self.holding
+        if held is None:
+            outside = [o for o in self._scene_objects() if not self._in_bin(self.sim.pose(o.body)[0])]
+            pool = outside or self._scene_objects()
+            target = max(pool, key=lambda o: (o.half_extents[0] * o.half_extents[1] * o.half_extents[2], -o.body))
+            return self._grasp(target, math.pi)
+        yaw = self.snap_yaw(self.bin_yaw)
+        uv = self._best_spot(held, yaw)
+        x, y = self._from_bin(uv)
+        return self._place_held_with_yaw(x, y, yaw)
+
+    def _best_spot(self, held, gripper_yaw: float) -> np.ndarray:
+        """Bin-frame (u, v) where the held block rests lowest with both finger zones clear.
+
+        Candidates on a 5 mm grid of the bin interior; the heightmap is sampled under the block's
+        footprint and under the two finger zones (batched over candidates × samples)."""
+        hx, hy, hz = held.half_extents
+        us = np.arange(-BIN.inner_x / 2 + hx + 0.005, BIN.inner_x / 2 - hx - 0.005 + 1e-9, GRID_STEP)
+        vs = np.arange(-BIN.inner_y / 2 + hy + 0.005, BIN.inner_y / 2 - hy - 0.005 + 1e-9, GRID_STEP)
+        cand = np.stack(np.meshgrid(us, vs, indexing="ij"), -1).reshape(-1, 2)
+        world = self._from_bin(cand)  # [C, 2]
+        c, s = math.cos(gripper_yaw), math.sin(gripper_yaw)
+        axis_a, axis_b = np.array([c, s]), np.array([-s, c])  # closing direction, across it
+        res = self.workspace.resolution
+        a = np.arange(-hx, hx + 1e-9, res)
+        b = np.arange(-hy, hy + 1e-9, res)
+        body = (a[:, None, None] * axis_a + b[None, :, None] * axis_b).reshape(-1, 2)
+        fa = np.concatenate([np.arange(hx, hx + FINGER_ZONE, res), -np.arange(hx, hx + FINGER_ZONE, res)])
+        fb = np.arange(-0.012, 0.0121, res)
+        fingers = (fa[:, None, None] * axis_a + fb[None, :, None] * axis_b).reshape(-1, 2)
+        surface = self._sample_heights(world[:, None] + body[None]).max(1)
+        finger_top = self._sample_heights(world[:, None] + fingers[None]).max(1)
+        tip = surface + 0.005 + self.gripper.tip_to_bottom
+        fits = finger_top < tip - 0.003
+        score = np.where(fits, surface, surface + 1.0)
+        # lowest resting height (to 5 mm), then fill from one end of the bin
+        order = np.lexsort((cand[:, 1], cand[:, 0], np.round(score / 0.005)))
+        return cand[order[0]]
+
+    def _sample_heights(self, xy: np.ndarray) -> np.ndarray:
+        """Heightmap values at metric points ``[..., 2]``; points off the workspace read 1 m."""
+        ws = self.workspace
+        rc = np.floor((xy - np.array([ws.x_min, ws.y_min])) / ws.resolution).astype(np.int64)
+        inside = np.all((rc >= 0) & (rc < ws.pixels), -1)
+        rc = np.clip(rc, 0, ws.pixels - 1)
+        return np.where(inside, self.heightmap[rc[..., 0], rc[..., 1]], 1.0)

@@ -1,0 +1,199 @@
+"""Physics of the simulated pick-and-place world: stacking, grasping, rendering, validity."""
+
+import math
+
+import numpy as np
+import pybullet as pb
+import pytest
+import gymnasium as gym
+
+import ldm_rl.envs  # noqa: F401  (registers the ids)
+from ldm_rl.envs.objects import CUBE, spawn
+
+SIM_HZ = 240
+
+
+@pytest.fixture
+def stacking():
+    env = gym.make("ldm_rl/BlockStacking-v0").unwrapped
+    env.reset(seed=0)
+    yield env
+    env.close()
+
+
+def empty_scene(env):
+    env.gripper.drop()
+    env.sim.clear()
+
+
+def test_heightmap_reads_cube_top_and_position(stacking):
+    env = stacking
+    empty_scene(env)
+    spawn(env.sim, CUBE, 0.3, 0.1, 0.0)
+    env.sim.settle(60)
+    h = env.camera.heightmap(env.sim.client)
+    row, col = env.workspace.metric_to_pixel(np.array([0.3, 0.1]))
+    assert abs(h[row, col] - 0.040) <= 0.002
+    rows, cols = np.nonzero(h > 0.02)
+    # pixel centres inside the cube: x in [0.28, 0.32] -> rows 26..37, y in [0.08, 0.12] -> cols 90..101
+    assert abs(rows.min() - 26) <= 1 and abs(rows.max() - 37) <= 1
+    assert abs(cols.min() - 90) <= 1 and abs(cols.max() - 101) <= 1
+    assert abs(rows.mean() - (row - 0.5)) <= 0.6 and abs(cols.mean() - (col - 0.5)) <= 0.6
+    assert h[h < 0.02].max() == 0.0  # the table reads exactly 0
+
+
+def test_cube_placed_on_cube_stays(stacking):
+    env = stacking
+    empty_scene(env)
+    spawn(env.sim, CUBE, 0.45, -0.05, 0.3)
+    spawn(env.sim, CUBE, 0.3, 0.1, 1.0)
+    env.sim.settle(60)
+    env.restart_clock()
+    env._heightmap = env.camera.heightmap(env.sim.client)
+    for _ in range(2):
+        _, _, _, _, info = env.step(env.expert_action())
+        assert info["primitive_success"]
+    placed = env.sim.positions()
+    env.sim.step(2 * SIM_HZ)
+    p_bottom, p_top = env.sim.positions()[np.argsort(env.sim.positions()[:, 2])]
+    np.testing.assert_allclose(env.sim.positions(), placed, atol=0.002)  # nothing moves afterwards
+    assert abs(p_top[2] - p_bottom[2] - 0.04) < 0.004
+    assert np.linalg.norm(p_top[:2] - p_bottom[:2]) < 0.006
+
+
+def test_three_block_stack_persists_five_seconds(stacking):
+    env = stacking
+    env.reset_to_goal(seed=1)
+    before = env.sim.positions()
+    assert env._is_success()
+    env.sim.step(5 * SIM_HZ)
+    after = env.sim.positions()
+    assert env._is_success()
+    assert np.abs(after - before).max() < 0.002
+
+
+def test_grasped_object_rises_and_is_released_where_placed(stacking):
+    env = stacking
+    empty_scene(env)
+    cube = spawn(env.sim, CUBE, 0.3, 0.1, 0.0)
+    env.sim.settle(60)
+    gripper = env.gripper
+    heights = []
+    start = env.sim.pose(cube.body)[0]
+    # run the pick by hand to watch the lift: descend, close, lift
+    gripper._teleport((0.3, 0.1, 0.02 + 0.03 + gripper.config.finger_length), 0.0, slide=0.0, fingers=gripper._open_q)
+    gripper._move_slide(-0.03)
+    gripper._close()
+    for target in (0.0, 0.03, 0.06):
+        gripper._move_slide(target)
+        heights.append(env.sim.pose(cube.body)[0][2] - start[2])
+    assert heights[0] < heights[1] < heights[2]
+    assert heights[2] > 0.05  # rose with the 6 cm lift
+    gripper._open()
+    gripper.park()
+    env.sim.settle(60)
+    held = gripper.pick(0.3, 0.1, 0.02, 0.0)
+    assert held is not None and held.body == cube.body
+    gripper.place(0.45, -0.05, gripper.tip_to_bottom + 0.005, 0.0)
+    env.sim.settle(60)
+    end = env.sim.pose(cube.body)[0]
+    assert np.linalg.norm(end[:2] - [0.45, -0.05]) < 0.005
+    assert abs(end[2] - 0.02) < 0.002
+    assert gripper.held is None
+
+
+def test_pick_on_empty_table_fails(stacking):
+    env = stacking
+    env.reset(seed=3)
+    positions = env.sim.positions()
+    # a pixel at least 8 cm from every cube
+    grid = np.stack(np.meshgrid(np.linspace(0.25, 0.55, 13), np.linspace(-0.15, 0.15, 13)), -1).reshape(-1, 2)
+    free = grid[np.linalg.norm(grid[:, None] - positions[None, :, :2], axis=-1).min(1) > 0.08][0]
+    obs, reward, terminated, _, info = env.step(env.pose_to_action(free[0], free[1], 0.0))
+    assert info["primitive"] == "pick" and not info["primitive_success"]
+    assert obs["holding"][0] == 0 and not obs["in_hand"].any() and reward == 0.0
+    np.testing.assert_allclose(env.sim.positions(), positions, atol=1e-3)
+
+
+def test_successful_pick_fills_in_hand_with_the_pre_pick_crop(stacking):
+    env = stacking
+    obs, _ = env.reset(seed=4)
+    action = env.expert_action()
+    next_obs, _, _, _, info = env.step(action)
+    assert info["primitive_success"] and next_obs["holding"][0] == 1
+    import torch
+    from ldm_rl import geometry
+
+    yaw = float(geometry.bin_to_angle(torch.tensor(int(action[2])), env.num_rotations))
+    expected = geometry.crop(torch.from_numpy(obs["heightmap"]), torch.from_numpy(action[:2]), yaw, 24)
+    np.testing.assert_allclose(next_obs["in_hand"], expected.numpy(), atol=1e-6)
+    assert abs(next_obs["in_hand"][0, 12, 12] - 0.04) < 0.003
+    # the picked cube is no longer in the heightmap around the pick pixel
+    assert next_obs["heightmap"][0, action[0], action[1]] == 0.0
+    next_obs, _, _, _, _ = env.step(env.expert_action())
+    assert not next_obs["in_hand"].any() and next_obs["holding"][0] == 0
+
+
+def test_tipped_bottle_terminates_the_episode():
+    env = gym.make("ldm_rl/BottleArrangement-v0", num_objects=4).unwrapped
+    try:
+        env.reset(seed=0)
+        bottle = env.sim.objects[0]
+        x, y, _ = env.sim.pose(bottle.body)[0]
+        lying = pb.getQuaternionFromEuler([math.pi / 2, 0.0, 0.0])
+        pb.resetBasePositionAndOrientation(bottle.body, [x, y, 0.0225], lying, physicsClientId=env.sim.client)
+        _, reward, terminated, truncated, info = env.step(env.expert_action())
+        assert terminated and not truncated and reward == 0.0
+        assert "tipped" in info["invalid"]
+    finally:
+        env.close()
+
+
+def test_object_out_of_workspace_terminates(stacking):
+    env = stacking
+    cube = env.sim.objects[0]
+    pb.resetBasePositionAndOrientation(cube.body, [0.7, 0.0, 0.02], [0, 0, 0, 1], physicsClientId=env.sim.client)
+    _, reward, terminated, _, info = env.step(env.expert_action())
+    assert terminated and reward == 0.0 and "workspace" in info["invalid"]
+
+
+def test_tipped_roof_terminates_house_building():
+    env = gym.make("ldm_rl/HouseBuilding-v0").unwrapped
+    try:
+        env.reset(seed=0)
+        roof = env.roof
+        x, y, _ = env.sim.pose(roof.body)[0]
+        on_side = pb.getQuaternionFromEuler([math.pi / 2, 0.0, 0.0])
+        pb.resetBasePositionAndOrientation(roof.body, [x, y, 0.03], on_side, physicsClientId=env.sim.client)
+        _, reward, terminated, _, info = env.step(env.expert_action())
+        assert terminated and reward == 0.0 and "roof" in info["invalid"]
+    finally:
+        env.close()
+
+
+def test_bin_packing_reward_is_terminal_pile_height_margin():
+    from ldm_rl.envs.episodes import run_expert_episode
+    from ldm_rl.envs.tasks.bin_packing import BIN
+
+    env = gym.make("ldm_rl/BinPacking-v0").unwrapped
+    try:
+        episode = run_expert_episode(env, seed=2)
+        assert episode[-1].terminated and env._is_success()
+        assert all(t.reward == 0.0 for t in episode[:-1])
+        assert episode[-1].reward == pytest.approx(100 * (BIN.height - env.pile_top()))
+        assert BIN.height - 0.05 < env.pile_top() < BIN.height + 0.05
+    finally:
+        env.close()
+
+
+def test_resets_do_not_accumulate_bodies():
+    env = gym.make("ldm_rl/BottleArrangement-v0", num_objects=5).unwrapped
+    try:
+        for seed in range(15):
+            env.reset(seed=seed)
+            # table + gripper + tray + 5 bottles, whatever happened before
+            assert pb.getNumBodies(physicsClientId=env.sim.client) == 8
+            if seed % 5 == 0:
+                env.step(env.expert_action())
+    finally:
+        env.close()
