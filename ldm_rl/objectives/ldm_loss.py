@@ -1,0 +1,116 @@
+"""``LDMLoss``: the focal loss of the Local Dynamics Model as a TorchRL ``LossModule``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from ldm_rl.objectives.focal import depth_class_weights, focal_loss
+from ldm_rl.world_model.core import DynamicsModel, validate_state_action
+
+__all__ = ["LDMLoss"]
+
+
+class LDMLoss(LossModule):
+    """Focal loss between the model's frame logits and the depth classes of the true next frame.
+
+    The target is ``dynamics.frame_classes(next_heightmap, action)``: the crop of the true next heightmap
+    at the same action and angle (LDM) or the whole next heightmap (Naive).
+
+    Args:
+        dynamics: the :class:`DynamicsModel` to train (a child module: ``loss.parameters()`` are its
+            parameters).
+        gamma: focal exponent (0 = weighted cross-entropy, the released code's choice).
+        class_weights: None (all 1), a [K] tensor, or ``"auto"``: the reference's rule
+            ``w_c = max(1, ln(0.05·N/n_c))`` from the target class counts accumulated over every batch
+            seen in training mode (buffer ``class_counts``; fixed in eval mode).
+        label_smoothing: ε of the smoothed target distribution.
+
+    Returns a TensorDict with ``loss_dynamics`` (scalar) and diagnostics ``pixel_accuracy`` (argmax ==
+    target over the frame) and ``changed_pixel_accuracy`` (the same over pixels whose class changes).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Input keys; change them with ``loss.set_keys(heightmap=..., next_heightmap=...)``."""
+
+        heightmap: NestedKey = "heightmap"
+        in_hand: NestedKey = "in_hand"
+        holding: NestedKey = "holding"
+        action: NestedKey = "action"
+        next_heightmap: NestedKey = ("next", "heightmap")
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+
+    def __init__(self, dynamics: DynamicsModel, *, gamma: float = 2.0, class_weights=None, label_smoothing: float = 0.0) -> None:
+        super().__init__()
+        if gamma < 0 or not 0.0 <= label_smoothing < 1.0:
+            raise ValueError(f"need gamma >= 0 and label_smoothing in [0, 1), got {gamma}, {label_smoothing}")
+        self.dynamics = dynamics
+        self.gamma, self.label_smoothing = float(gamma), float(label_smoothing)
+        k = dynamics.num_classes
+        self.auto_weights = isinstance(class_weights, str)
+        if self.auto_weights and class_weights != "auto":
+            raise ValueError(f"class_weights must be None, a [K] tensor or 'auto', got {class_weights!r}")
+        if class_weights is not None and not self.auto_weights:
+            class_weights = torch.as_tensor(class_weights, dtype=torch.float32)
+            if class_weights.shape != (k,) or not torch.isfinite(class_weights).all() or (class_weights < 0).any():
+                raise ValueError(f"class_weights must be a finite non-negative [{k}] tensor, got {tuple(class_weights.shape)}")
+        self.register_buffer("class_counts", torch.zeros(k, dtype=torch.float64))
+        self.register_buffer("fixed_weights", None if class_weights is None or self.auto_weights else class_weights)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        k = self.tensor_keys
+        return [k.heightmap, k.in_hand, k.holding, k.action, k.next_heightmap]
+
+    def class_weights(self) -> torch.Tensor | None:
+        """The [K] weights in use (None = uniform)."""
+        if self.auto_weights:
+            return depth_class_weights(self.class_counts) if self.class_counts.sum() > 0 else None
+        return self.fixed_weights
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        k = self.tensor_keys
+        missing = [key for key in self.in_keys if key not in tensordict.keys(include_nested=True)]
+        if missing:
+            raise ValueError(f"LDMLoss input is missing keys {missing}")
+        heightmap, action = tensordict.get(k.heightmap), tensordict.get(k.action)
+        next_heightmap = tensordict.get(k.next_heightmap)
+        if not torch.is_tensor(next_heightmap) or next_heightmap.shape != heightmap.shape or not torch.isfinite(next_heightmap).all():
+            raise ValueError(f"{k.next_heightmap} must be a finite tensor shaped like {k.heightmap} {tuple(heightmap.shape)}")
+        batch, holding = validate_state_action(
+            heightmap, tensordict.get(k.in_hand), tensordict.get(k.holding), action, self.dynamics.num_rotations
+        )
+        if not batch:
+            raise ValueError("LDMLoss needs a batched tensordict (non-empty batch_size)")
+        logits = self.dynamics(heightmap, tensordict.get(k.in_hand), holding, action)
+        logits = logits.reshape(-1, *logits.shape[-3:])  # [N, K, S, S]
+        flat_action = action.reshape(-1, 3).long()
+        target = self.dynamics.frame_classes(next_heightmap.reshape(-1, *next_heightmap.shape[-3:]), flat_action)[:, 0]
+        before = self.dynamics.frame_classes(heightmap.reshape(-1, *heightmap.shape[-3:]), flat_action)[:, 0]
+        if self.auto_weights and self.training:
+            self.class_counts += torch.bincount(target.flatten().long(), minlength=self.dynamics.num_classes).to(self.class_counts)
+        per_sample = focal_loss(
+            logits, target, gamma=self.gamma, weight=self.class_weights(), label_smoothing=self.label_smoothing
+        )
+        with torch.no_grad():
+            correct = logits.argmax(1) == target
+            changed = target != before
+            changed_acc = (correct & changed).sum() / changed.sum().clamp_min(1)
+        return TensorDict(
+            {
+                "loss_dynamics": per_sample.mean(),
+                "pixel_accuracy": correct.float().mean(),
+                "changed_pixel_accuracy": changed_acc.float(),
+            },
+            batch_size=[],
+        )

@@ -1,0 +1,223 @@
+"""The dynamics core: s, a -> (logits of the frame after the action, predicted next state).
+
+Plain ``nn.Module``; the TorchRL wrappers live next to it (``modules``, ``transform``, ``imagined_env``).
+
+Frames. ``frame="local"`` (LDM): the frame is the crop B_a of side ``crop_size`` centred at the action
+pixel and rotated by the action's bin angle (``geometry.crop``, nearest, on the depth-class map); the
+predicted frame is pasted back inside B_a only (every other pixel is bit-identical). ``frame="global"``
+(Naive baseline): the frame is the whole, unrotated heightmap and the action is given as 3 extra input
+planes (a Gaussian blob at the action pixel, cos 2θ and sin 2θ); the prediction replaces the whole image.
+
+Next state. heightmap' = pasted ``argmax`` classes converted to metres; holding' by
+:class:`HandStateRule` on the depth classes around the action before vs after; in_hand' = the central
+``hand_size`` crop of the pre-action heightmap at the action when holding' else zeros.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from ldm_rl import geometry
+from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet
+
+__all__ = ["HandStateRule", "DynamicsPrediction", "DynamicsModel", "validate_state_action", "HEIGHTMAP_SIZE", "HAND_SIZE"]
+
+HEIGHTMAP_SIZE = 128
+HAND_SIZE = 24
+
+
+@dataclass(frozen=True)
+class HandStateRule:
+    """The reference's hand-state rule on depth classes around the action.
+
+    ``n(X)`` = number of pixels with class > 0 in the central ``center_size``² window of crop X (taken at
+    the action, rotated by its angle). The hand holds something after the action iff
+    ``n(before) > before_threshold`` and ``n(after) <= after_threshold`` (an object was there and is
+    gone). Applied to picks and places alike (a place leaves the centre occupied, hence False).
+    """
+
+    center_size: int = 32
+    before_threshold: int = 25
+    after_threshold: int = 25
+
+    def count(self, classes: torch.Tensor) -> torch.Tensor:
+        """[N, 1, d, d] int classes (d >= center_size) -> [N] int64 occupied-pixel counts."""
+        return (geometry.center_crop(classes, self.center_size) > 0).flatten(1).sum(1)
+
+    def __call__(self, before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+        """[N, 1, d, d] class crops before/after -> [N] bool, predicted holding after the action."""
+        return (self.count(before) > self.before_threshold) & (self.count(after) <= self.after_threshold)
+
+
+class DynamicsPrediction(NamedTuple):
+    """Predicted next state; leading dims ``*B`` as the inputs."""
+
+    heightmap: torch.Tensor  # [*B, 1, 128, 128] float32 metres
+    in_hand: torch.Tensor  # [*B, 1, 24, 24] float32 metres
+    holding: torch.Tensor  # [*B, 1] bool
+    logits: torch.Tensor  # [*B, K, S, S] float32 frame logits
+
+
+def _shape_error(name: str, expected: str, value) -> ValueError:
+    got = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
+    return ValueError(f"{name} must be {expected}, got {got}")
+
+
+def validate_state_action(heightmap, in_hand, holding, action, num_rotations: int):
+    """Check one state-action batch at the module boundary; returns (batch shape, holding as [*B] bool).
+
+    heightmap [*B,1,128,128] float (finite), in_hand [*B,1,24,24] float (finite), holding [*B,1] or [*B]
+    bool/integer in {0,1}, action [*B,3] integer (row, col in 0..127, rot in 0..R−1). Raises ValueError.
+    """
+    hw = HEIGHTMAP_SIZE
+    if not torch.is_tensor(heightmap) or heightmap.dim() < 3 or tuple(heightmap.shape[-3:]) != (1, hw, hw):
+        raise _shape_error("heightmap", f"a [*B, 1, {hw}, {hw}] float tensor (metres)", heightmap)
+    batch = heightmap.shape[:-3]
+    if not torch.is_tensor(in_hand) or tuple(in_hand.shape) != (*batch, 1, HAND_SIZE, HAND_SIZE):
+        raise _shape_error("in_hand", f"[{', '.join(map(str, batch))}, 1, {HAND_SIZE}, {HAND_SIZE}] (batch of heightmap)", in_hand)
+    if not torch.is_tensor(action) or tuple(action.shape) != (*batch, 3):
+        raise _shape_error("action", f"[{', '.join(map(str, batch))}, 3] int64 (row, col, rot bin)", action)
+    if not torch.is_tensor(holding) or tuple(holding.shape) not in ((*batch, 1), tuple(batch)):
+        raise _shape_error("holding", f"[{', '.join(map(str, batch))}, 1] bool", holding)
+    for name, t in (("heightmap", heightmap), ("in_hand", in_hand)):
+        if not t.is_floating_point():
+            raise ValueError(f"{name} must be a floating-point tensor in metres, got dtype {t.dtype}")
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{name} contains NaN or inf")
+    if action.is_floating_point() or action.dtype == torch.bool:
+        raise ValueError(f"action must be an integer tensor (row, col, rot bin), got dtype {action.dtype}")
+    limits = torch.tensor([hw, hw, num_rotations], device=action.device)
+    if action.numel() and ((action < 0) | (action >= limits)).any():
+        raise ValueError(f"action out of range: row, col must lie in [0, {hw}) and rot in [0, {num_rotations})")
+    if holding.is_floating_point():
+        raise ValueError(f"holding must be bool (or integer 0/1), got dtype {holding.dtype}")
+    if holding.dtype != torch.bool and holding.numel() and ((holding < 0) | (holding > 1)).any():
+        raise ValueError("holding must contain only 0/1")
+    return batch, holding.reshape(batch).bool()
+
+
+class DynamicsModel(nn.Module):
+    """Local (LDM) or global (Naive) dynamics model around a :class:`TwoHeadDynamicsNet`.
+
+    Args:
+        net: the two-head network; ``net.extra_channels`` must be 0 (local) or 3 (global).
+        frame: ``"local"`` (crop B_a, paste back) or ``"global"`` (whole image, action planes).
+        crop_size: side of B_a in pixels (local frame; 64 = LDM(64), 128 = LDM(128)).
+        max_height: metres mapped to the top depth class (per task).
+        num_rotations: R rotation bins (angle k·π/R).
+        hand_rule: the hand-state rule.
+        hand_crop_mode: geometry.crop mode for the predicted in-hand image (as the env renders it).
+        action_sigma: pixels, width of the Naive model's Gaussian action blob.
+    """
+
+    def __init__(
+        self,
+        net: TwoHeadDynamicsNet,
+        *,
+        frame: str = "local",
+        crop_size: int = 64,
+        max_height: float,
+        num_rotations: int = 8,
+        hand_rule: HandStateRule = HandStateRule(),
+        hand_crop_mode: str = "bilinear",
+        action_sigma: float = 2.0,
+    ) -> None:
+        super().__init__()
+        if frame not in ("local", "global"):
+            raise ValueError(f"frame must be 'local' or 'global', got {frame!r}")
+        expected_extra = 0 if frame == "local" else 3
+        if net.extra_channels != expected_extra:
+            raise ValueError(f"frame={frame!r} needs a net with extra_channels={expected_extra}, got {net.extra_channels}")
+        size = crop_size if frame == "local" else HEIGHTMAP_SIZE
+        if size % 16 or not HAND_SIZE <= size <= HEIGHTMAP_SIZE or size < hand_rule.center_size:
+            raise ValueError(f"crop_size must be a multiple of 16 in [{max(HAND_SIZE, hand_rule.center_size)}, {HEIGHTMAP_SIZE}], got {size}")
+        self.net, self.frame, self.frame_size = net, frame, size
+        self.max_height, self.num_rotations, self.num_classes = float(max_height), int(num_rotations), net.num_classes
+        self.hand_rule, self.hand_crop_mode, self.action_sigma = hand_rule, hand_crop_mode, float(action_sigma)
+
+    # ---------------------------------------------------------------- frames
+    def classes(self, heights: torch.Tensor) -> torch.Tensor:
+        """Heights (metres) -> uint8 depth classes, same shape."""
+        return geometry.heights_to_classes(heights, self.max_height, self.num_classes)
+
+    def heights(self, classes: torch.Tensor) -> torch.Tensor:
+        """Depth classes -> float32 metres, same shape."""
+        return geometry.classes_to_heights(classes, self.max_height, self.num_classes)
+
+    def frame_classes(self, heightmap: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """[N,1,128,128] metres, [N,3] action -> [N,1,S,S] uint8 classes of the model's frame.
+
+        Also the target of the loss when given the true next heightmap.
+        """
+        classes = self.classes(heightmap)
+        if self.frame == "global":
+            return classes
+        centers, angles = geometry.action_to_pose(action, self.num_rotations)
+        return geometry.crop(classes, centers, angles, self.frame_size, mode="nearest")
+
+    def action_region(self, classes: torch.Tensor, action: torch.Tensor, size: int) -> torch.Tensor:
+        """Rotated ``size``² class crop at the action (for the hand-state rule): [N,1,size,size] uint8."""
+        centers, angles = geometry.action_to_pose(action, self.num_rotations)
+        return geometry.crop(classes, centers, angles, size, mode="nearest")
+
+    def action_planes(self, action: torch.Tensor) -> torch.Tensor:
+        """[N,3] action -> [N,3,128,128] float32: Gaussian blob at (row, col), cos 2θ, sin 2θ (Naive input)."""
+        n, hw = action.shape[0], HEIGHTMAP_SIZE
+        grid = torch.arange(hw, device=action.device, dtype=torch.float32)
+        dr = grid.view(1, hw, 1) - action[:, 0].float().view(n, 1, 1)
+        dc = grid.view(1, 1, hw) - action[:, 1].float().view(n, 1, 1)
+        blob = torch.exp(-(dr**2 + dc**2) / (2 * self.action_sigma**2))
+        angle = geometry.bin_to_angle(action[:, 2], self.num_rotations).to(action.device)
+        cos2, sin2 = torch.cos(2 * angle).view(n, 1, 1), torch.sin(2 * angle).view(n, 1, 1)
+        return torch.stack((blob, cos2.expand(n, hw, hw), sin2.expand(n, hw, hw)), dim=1)
+
+    # ---------------------------------------------------------------- model
+    def _flat_logits(self, heightmap, in_hand, holding, action):
+        frame = self.frame_classes(heightmap, action)
+        extra = self.action_planes(action) if self.frame == "global" else None
+        return self.net(frame, self.classes(in_hand), holding, extra), frame
+
+    def forward(self, heightmap, in_hand, holding, action) -> torch.Tensor:
+        """Frame logits ``[*B, K, S, S]`` for a state-action batch (see :func:`validate_state_action`)."""
+        batch, holding = validate_state_action(heightmap, in_hand, holding, action, self.num_rotations)
+        logits, _ = self._flat_logits(*self._flatten(batch, heightmap, in_hand, holding, action))
+        return logits.reshape(*batch, *logits.shape[1:])
+
+    def predict(self, heightmap, in_hand, holding, action) -> DynamicsPrediction:
+        """Full next-state prediction (heightmap', in_hand', holding', logits); see the module docstring."""
+        batch, holding = validate_state_action(heightmap, in_hand, holding, action, self.num_rotations)
+        heightmap, in_hand, holding, action = self._flatten(batch, heightmap, in_hand, holding, action)
+        logits, frame_before = self._flat_logits(heightmap, in_hand, holding, action)
+        frame_after = logits.argmax(1, keepdim=True).to(torch.uint8)
+        centers, angles = geometry.action_to_pose(action, self.num_rotations)
+        size = self.hand_rule.center_size
+        if self.frame == "local":
+            patch = self.heights(frame_after).to(heightmap.dtype)
+            next_heightmap = geometry.paste(heightmap, patch, centers, angles, mode="nearest")
+            next_holding = self.hand_rule(geometry.center_crop(frame_before, size), geometry.center_crop(frame_after, size))
+        else:
+            next_heightmap = self.heights(frame_after).to(heightmap.dtype)
+            next_holding = self.hand_rule(
+                self.action_region(frame_before, action, size), self.action_region(frame_after, action, size)
+            )
+        grasped = geometry.crop(heightmap, centers, angles, HAND_SIZE, mode=self.hand_crop_mode)
+        next_in_hand = torch.where(next_holding.view(-1, 1, 1, 1), grasped, torch.zeros_like(grasped))
+        return DynamicsPrediction(
+            next_heightmap.reshape(*batch, *next_heightmap.shape[1:]),
+            next_in_hand.reshape(*batch, *next_in_hand.shape[1:]),
+            next_holding.reshape(*batch, 1),
+            logits.reshape(*batch, *logits.shape[1:]),
+        )
+
+    @staticmethod
+    def _flatten(batch, heightmap, in_hand, holding, action):
+        return (
+            heightmap.reshape(-1, *heightmap.shape[len(batch):]),
+            in_hand.reshape(-1, *in_hand.shape[len(batch):]),
+            holding.reshape(-1),
+            action.reshape(-1, 3).long(),
+        )

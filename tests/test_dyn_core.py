@@ -1,0 +1,138 @@
+"""Dynamics core: exact SE(2) equivariance, exact locality, the hand-state rule, input validation."""
+
+import pytest
+import torch
+
+from dyn_helpers import block_scenes, tiny_model
+from dyn_helpers import one_torch_thread  # noqa: F401  (fixture)
+from ldm_rl.metrics import action_region_mask
+from ldm_rl.world_model import HandStateRule
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+R = 8
+
+
+def _rotate_scene_and_action(heightmap, action):
+    """Rotate by +90° when the bin k < R/2 (k -> k + R/2), else by −90° (k -> k − R/2)."""
+    r, c, k = action.unbind(-1)
+    plus = k < R // 2
+    rot_plus = torch.rot90(heightmap, 1, dims=(-2, -1))  # new[127 − c, r] = old[r, c]
+    rot_minus = torch.rot90(heightmap, -1, dims=(-2, -1))  # new[c, 127 − r] = old[r, c]
+    scene = torch.where(plus.view(-1, 1, 1, 1), rot_plus, rot_minus)
+    new_action = torch.where(
+        plus.unsqueeze(-1), torch.stack((127 - c, r, k + R // 2), -1), torch.stack((c, 127 - r, k - R // 2), -1)
+    )
+    return scene, new_action, plus
+
+
+@pytest.mark.parametrize("crop_size", [64, 128])
+def test_prediction_is_exactly_equivariant_to_quarter_turns(crop_size):
+    model = tiny_model(crop_size=crop_size)
+    n = 8
+    heightmap = block_scenes(n, seed=1)
+    in_hand = torch.rand(n, 1, 24, 24) * 0.05
+    holding = (torch.arange(n) % 2 == 0).unsqueeze(-1)
+    action = torch.stack((torch.randint(0, 128, (n,)), torch.randint(0, 128, (n,)), torch.arange(n)), -1)
+    with torch.no_grad():
+        pred = model.predict(heightmap, in_hand, holding, action)
+        scene_r, action_r, plus = _rotate_scene_and_action(heightmap, action)
+        pred_r = model.predict(scene_r, in_hand, holding, action_r)
+    expected = torch.where(
+        plus.view(-1, 1, 1, 1), torch.rot90(pred.heightmap, 1, dims=(-2, -1)), torch.rot90(pred.heightmap, -1, dims=(-2, -1))
+    )
+    assert torch.equal(pred_r.heightmap, expected)
+    assert torch.equal(pred_r.logits, pred.logits)
+    assert torch.equal(pred_r.in_hand, pred.in_hand)
+    assert torch.equal(pred_r.holding, pred.holding)
+    assert not torch.equal(pred.heightmap, heightmap)  # the check is not vacuous
+
+
+@pytest.mark.parametrize("crop_size", [64, 128])
+def test_pixels_outside_the_action_square_are_bit_identical(crop_size):
+    model = tiny_model(crop_size=crop_size)
+    n = 6
+    heightmap = block_scenes(n, seed=2) + torch.rand(n, 1, 128, 128) * 1e-3  # not on the class grid
+    action = torch.stack((torch.randint(0, 128, (n,)), torch.randint(0, 128, (n,)), torch.randint(0, R, (n,))), -1)
+    holding = torch.zeros(n, 1, dtype=torch.bool)
+    with torch.no_grad():
+        pred = model.predict(heightmap, torch.zeros(n, 1, 24, 24), holding, action)
+    outside = ~action_region_mask(action, crop_size, R)
+    assert outside.sum() > 0
+    assert torch.equal(pred.heightmap[outside], heightmap[outside])
+    inside_changed = (pred.heightmap != heightmap) & ~outside
+    assert inside_changed.any()
+
+
+def test_naive_model_predicts_the_whole_image():
+    model = tiny_model(name="naive")
+    hm = block_scenes(2)
+    pred = model.predict(hm, torch.zeros(2, 1, 24, 24), torch.tensor([[False], [True]]), torch.tensor([[5, 5, 0], [100, 90, 3]]))
+    assert pred.logits.shape == (2, 21, 128, 128) and pred.heightmap.shape == hm.shape
+
+
+def test_hand_state_rule_on_hand_made_crops():
+    rule = HandStateRule()
+    empty = torch.zeros(1, 1, 64, 64, dtype=torch.uint8)
+
+    def with_block(side, value=3):
+        x = empty.clone()
+        x[..., 32 - side // 2 : 32 - side // 2 + side, 32 - side // 2 : 32 - side // 2 + side] = value
+        return x
+
+    assert rule(with_block(8), empty).item()  # 64 object pixels, then none: grasped
+    assert not rule(with_block(5), empty).item()  # 25 pixels is not > 25
+    assert not rule(with_block(8), with_block(6)).item()  # 36 > 25 left behind: failed pick
+    assert rule(with_block(8), with_block(5)).item()  # 25 left is <= 25
+    off_centre = empty.clone()
+    off_centre[..., 0:10, 0:10] = 3  # outside the central 32x32
+    assert not rule(off_centre, empty).item()
+    strict = HandStateRule(center_size=32, before_threshold=100, after_threshold=0)
+    assert not strict(with_block(8), empty).item()
+
+
+def test_predicted_in_hand_is_the_centre_of_the_crop_after_a_grasp():
+    model = tiny_model()
+    hm = torch.zeros(1, 1, 128, 128)
+    hm[..., 60:70, 60:70] = 0.04
+    with torch.no_grad():
+        pred = model.predict(hm, torch.zeros(1, 1, 24, 24), torch.tensor([[False]]), torch.tensor([[64, 64, 0]]))
+    if pred.holding.item():
+        assert torch.equal(pred.in_hand[0, 0], hm[0, 0, 52:76, 52:76])
+    else:
+        assert (pred.in_hand == 0).all()
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("heightmap", torch.zeros(2, 1, 64, 64), "heightmap"),
+        ("heightmap", torch.full((2, 1, 128, 128), float("nan")), "NaN"),
+        ("in_hand", torch.full((2, 1, 24, 24), float("inf")), "in_hand"),
+        ("in_hand", torch.zeros(3, 1, 24, 24), "in_hand"),
+        ("action", torch.tensor([[1.0, 2.0, 0.0], [1.0, 2.0, 0.0]]), "action"),
+        ("action", torch.tensor([[1, 2, 8], [1, 2, 0]]), "action"),
+        ("action", torch.tensor([[1, 200, 0], [1, 2, 0]]), "action"),
+        ("holding", torch.zeros(2, 2, dtype=torch.bool), "holding"),
+        ("holding", torch.full((2, 1), 0.5), "holding"),
+    ],
+)
+def test_bad_inputs_are_rejected_with_a_clear_message(field, value, message):
+    model = tiny_model()
+    inputs = {
+        "heightmap": torch.zeros(2, 1, 128, 128),
+        "in_hand": torch.zeros(2, 1, 24, 24),
+        "holding": torch.zeros(2, 1, dtype=torch.bool),
+        "action": torch.tensor([[1, 2, 0], [3, 4, 5]]),
+    }
+    inputs[field] = value
+    with pytest.raises(ValueError, match=message):
+        model.predict(**inputs)
+
+
+def test_leading_batch_dims_are_kept():
+    model = tiny_model()
+    hm = block_scenes(6).reshape(2, 3, 1, 128, 128)
+    pred = model.predict(hm, torch.zeros(2, 3, 1, 24, 24), torch.zeros(2, 3, 1, dtype=torch.bool), torch.full((2, 3, 3), 5))
+    assert pred.heightmap.shape == (2, 3, 1, 128, 128) and pred.holding.shape == (2, 3, 1)
+    assert pred.logits.shape == (2, 3, 21, 64, 64)

@@ -1,0 +1,87 @@
+"""Recipes: config composition, Table-1 aggregation, and a smoke run of recipes/train_dynamics.py."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("model, name, crop", [("ldm64", "ldm", 64), ("ldm128", "ldm", 128), ("naive", "naive", 64)])
+def test_model_configs_compose_and_build(model, name, crop):
+    from ldm_rl.models import build_dynamics_model
+
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        cfg = compose(config_name="config", overrides=[f"model={model}", "model.width=0.125"])
+    assert cfg.model.name == name and cfg.model.crop_size == crop and cfg.model.preset == "lite"
+    built = build_dynamics_model(cfg.model, max_height=0.15)
+    assert built.frame == ("global" if name == "naive" else "local")
+    assert built.frame_size == (128 if name == "naive" else crop)
+
+
+def test_paper_preset_builds_the_reference_widths():
+    from ldm_rl.models import build_dynamics_model, count_parameters
+
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        cfg = compose(config_name="config", overrides=["model.preset=paper", "model.num_depth_classes=11"])
+    assert count_parameters(build_dynamics_model(cfg.model, 0.15).net.pick) == 24_893_963
+
+
+def test_aggregate_table1_writes_mean_and_std(tmp_path):
+    for seed, sr in enumerate((0.8, 0.9)):
+        run = tmp_path / str(seed)
+        run.mkdir()
+        (run / "final_metrics.json").write_text(
+            json.dumps({"task": "block_stacking", "model": "LDM(64)", "seed": seed, "sr": sr, "l1_mm": 2.0, "preset": "lite"})
+        )
+    out = tmp_path / "table.md"
+    subprocess.run([sys.executable, str(ROOT / "recipes" / "aggregate_table1.py"), str(tmp_path), "--out", str(out)], check=True,
+                   capture_output=True)
+    text = out.read_text()
+    assert "| LDM(64) | 85.0 ± 7.1 (n=2) [83.4] |" in text
+    assert "| Naive | – [38.0] |" in text
+
+
+def test_balanced_sampler_draws_half_picks_half_places():
+    import torch
+
+    from ldm_rl.world_model.training import PrimitiveBalancedSampler
+
+    holding = torch.tensor([False] * 9 + [True])
+    idx = PrimitiveBalancedSampler(holding, 8, seed=0).sample()
+    assert holding[idx].sum() == 4 and len(idx) == 8
+    only_picks = PrimitiveBalancedSampler(torch.zeros(5, dtype=torch.bool), 6, seed=0).sample()
+    assert len(only_picks) == 6 and (only_picks < 5).all()
+
+
+def test_train_dynamics_recipe_smoke(tmp_path):
+    run_dir = tmp_path / "run"
+    cmd = [
+        sys.executable, str(ROOT / "recipes" / "train_dynamics.py"),
+        "dynamics.num_demo_steps=24", "dynamics.iterations=4", "dynamics.eval_every=2", "dynamics.batch_size=4",
+        "dynamics.grid_samples=2", "model.width=0.125", "demos.progress=false", "threads=1", f"hydra.run.dir={run_dir}",
+    ]
+    result = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for name in ("checkpoint.pt", "metrics.csv", "predictions.png", "final_metrics.json", "sr_vs_iteration.png"):
+        assert (run_dir / name).is_file(), name
+    rows = (run_dir / "metrics.csv").read_text().strip().splitlines()
+    assert rows[0].startswith("iteration,loss") and len(rows) == 3
+    summary = json.loads((run_dir / "final_metrics.json").read_text())
+    assert summary["model"] == "LDM(64)" and summary["task"] == "block_stacking" and 0 <= summary["sr"] <= 1
+    import torch
+
+    state = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    assert state["iteration"] == 4 and "model_state" in state
+
+
+@pytest.mark.parametrize("task, iterations", [("block_stacking", 5000), ("house_building", 5000), ("bottle_arrangement", 10000), ("bin_packing", 10000)])
+def test_table1_presets_follow_the_protocol(task, iterations):
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        cfg = compose(config_name="config", overrides=[f"experiment=table1_{task}", "model=naive"])
+    assert cfg.dynamics.num_demo_steps == 5000 and cfg.dynamics.iterations == iterations
+    assert cfg.env.max_height > 0 and cfg.model.name == "naive"
