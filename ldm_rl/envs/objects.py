@@ -7,8 +7,10 @@ yaw (mod the object's symmetry). The body origin is the centre of mass.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numpy as np
 import pybullet as pb
 
 from ldm_rl.envs.physics import BodyInfo, Simulation
@@ -116,6 +118,35 @@ class ContainerSpec:
     @property
     def floor_top(self) -> float:
         return 2 * self.wall
+
+
+@dataclass(frozen=True)
+class ContainerFrame:
+    """Where a container stands (centre ``xy`` in metres, ``yaw`` in radians) and its 2-D frame.
+
+    Container coordinates (u, v) run along its inner x and y sides, origin at its centre.
+    """
+
+    spec: ContainerSpec
+    xy: tuple[float, float] = (0.0, 0.0)
+    yaw: float = 0.0
+
+    def to_local(self, xy) -> np.ndarray:
+        """``[..., ≥2]`` world points (metres; extra components ignored) -> ``[..., 2]`` (u, v)."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        d = np.asarray(xy, dtype=float)[..., :2] - np.asarray(self.xy)
+        return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+
+    def to_world(self, uv) -> np.ndarray:
+        """``[..., 2]`` container points (u, v) -> ``[..., 2]`` world (x, y), metres."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        uv = np.asarray(uv, dtype=float)
+        return np.asarray(self.xy) + np.stack([c * uv[..., 0] - s * uv[..., 1], s * uv[..., 0] + c * uv[..., 1]], -1)
+
+    def contains(self, xy) -> bool:
+        """Whether one world point lies strictly inside the inner rectangle (seen from above)."""
+        u, v = self.to_local(xy)
+        return abs(u) < self.spec.inner_x / 2 and abs(v) < self.spec.inner_y / 2
 
 
 def add_container(sim: Simulation, spec: ContainerSpec, x: float, y: float, yaw: float) -> int:

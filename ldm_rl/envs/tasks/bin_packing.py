@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from ldm_rl.envs.base import PickPlaceEnv, SpawnError, PrimitiveTarget
-from ldm_rl.envs.objects import BIN_BLOCKS, ContainerSpec, add_container, spawn
+from ldm_rl.envs.objects import BIN_BLOCKS, ContainerFrame, ContainerSpec, add_container, spawn
 
 __all__ = ["BinPackingEnv", "BIN"]
 
@@ -33,35 +33,20 @@ class BinPackingEnv(PickPlaceEnv):
 
     def __init__(self, num_objects: int = 8, **kwargs):
         super().__init__(num_objects, **kwargs)
-        self.bin_xy = np.zeros(2)
-        self.bin_yaw = 0.0
-
-    # --- bin frame -------------------------------------------------------------------------------
-    def _to_bin(self, xy: np.ndarray) -> np.ndarray:
-        c, s = math.cos(self.bin_yaw), math.sin(self.bin_yaw)
-        d = np.asarray(xy)[..., :2] - self.bin_xy
-        return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
-
-    def _from_bin(self, uv: np.ndarray) -> np.ndarray:
-        c, s = math.cos(self.bin_yaw), math.sin(self.bin_yaw)
-        return self.bin_xy + np.stack([c * uv[..., 0] - s * uv[..., 1], s * uv[..., 0] + c * uv[..., 1]], -1)
-
-    def _in_bin(self, xy: np.ndarray) -> bool:
-        u, v = self._to_bin(xy)
-        return abs(u) < BIN.inner_x / 2 and abs(v) < BIN.inner_y / 2
+        self.bin = ContainerFrame(BIN)
 
     # --- scene -----------------------------------------------------------------------------------
     def _build_scene(self, rng: np.random.Generator) -> None:
         outer = np.array([BIN.inner_x / 2 + 2 * BIN.wall, BIN.inner_y / 2 + 2 * BIN.wall])
-        (self.bin_xy,) = self._sample_positions(rng, 1, padding=float(np.hypot(*outer)), min_distance=0.0)
-        self.bin_yaw = float(rng.uniform(0, math.pi))
-        add_container(self.sim, BIN, *self.bin_xy, self.bin_yaw)
+        (xy,) = self._sample_positions(rng, 1, padding=float(np.hypot(*outer)), min_distance=0.0)
+        self.bin = ContainerFrame(BIN, (float(xy[0]), float(xy[1])), float(rng.uniform(0, math.pi)))
+        add_container(self.sim, BIN, *self.bin.xy, self.bin.yaw)
         ws, placed = self.workspace, []
         lo, hi = 0.035, ws.size - 0.035
         for _ in range(self.num_objects):
             for _ in range(200):
                 p = np.array([ws.x_min, ws.y_min]) + rng.uniform(lo, hi, size=2)
-                away = np.any(np.abs(self._to_bin(p)) > outer + BIN_MARGIN)
+                away = np.any(np.abs(self.bin.to_local(p)) > outer + BIN_MARGIN)
                 if away and all(np.linalg.norm(p - q) > BLOCK_DISTANCE for q in placed):
                     placed.append(p)
                     break
@@ -72,7 +57,7 @@ class BinPackingEnv(PickPlaceEnv):
             spawn(self.sim, BIN_BLOCKS[k], p[0], p[1], rng.uniform(0, 2 * math.pi))
 
     def _is_success(self) -> bool:
-        return all(self._in_bin(self.sim.pose(o.body)[0]) for o in self.sim.objects)
+        return all(self.bin.contains(self.sim.pose(o.body)[0]) for o in self.sim.objects)
 
     def pile_top(self) -> float:
         """Highest point of any block, m."""
@@ -86,13 +71,13 @@ class BinPackingEnv(PickPlaceEnv):
         """Pick the largest block outside the bin; place it where it ends lowest (fingers free)."""
         held = self.holding
         if held is None:
-            outside = [o for o in self._scene_objects() if not self._in_bin(self.sim.pose(o.body)[0])]
+            outside = [o for o in self._scene_objects() if not self.bin.contains(self.sim.pose(o.body)[0])]
             pool = outside or self._scene_objects()
             target = max(pool, key=lambda o: (o.half_extents[0] * o.half_extents[1] * o.half_extents[2], -o.body))
             return self._grasp(target, math.pi)
-        yaw = self.snap_yaw(self.bin_yaw)
+        yaw = self.snap_yaw(self.bin.yaw)
         uv = self._best_spot(held, yaw)
-        x, y = self._from_bin(uv)
+        x, y = self.bin.to_world(uv)
         return self._place_held_with_yaw(x, y, yaw)
 
     def _best_spot(self, held, gripper_yaw: float) -> np.ndarray:
@@ -104,7 +89,7 @@ class BinPackingEnv(PickPlaceEnv):
         us = np.arange(-BIN.inner_x / 2 + hx + 0.005, BIN.inner_x / 2 - hx - 0.005 + 1e-9, GRID_STEP)
         vs = np.arange(-BIN.inner_y / 2 + hy + 0.005, BIN.inner_y / 2 - hy - 0.005 + 1e-9, GRID_STEP)
         cand = np.stack(np.meshgrid(us, vs, indexing="ij"), -1).reshape(-1, 2)
-        world = self._from_bin(cand)  # [C, 2]
+        world = self.bin.to_world(cand)  # [C, 2]
         c, s = math.cos(gripper_yaw), math.sin(gripper_yaw)
         axis_a, axis_b = np.array([c, s]), np.array([-s, c])  # closing direction, across it
         res = self.workspace.resolution

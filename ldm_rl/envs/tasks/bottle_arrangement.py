@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from ldm_rl.envs.base import PickPlaceEnv, SpawnError, PrimitiveTarget
-from ldm_rl.envs.objects import ContainerSpec, add_container, bottle_spec, spawn
+from ldm_rl.envs.objects import ContainerFrame, ContainerSpec, add_container, bottle_spec, spawn
 
 __all__ = ["BottleArrangementEnv", "TRAY", "BOTTLES"]
 
@@ -29,36 +29,21 @@ class BottleArrangementEnv(PickPlaceEnv):
         if not 1 <= num_objects <= len(SLOTS):
             raise ValueError(f"num_objects must be in 1..{len(SLOTS)} (tray slots), got {num_objects!r}")
         super().__init__(num_objects, **kwargs)
-        self.tray_xy = np.zeros(2)
-        self.tray_yaw = 0.0
-
-    # --- tray frame ----------------------------------------------------------------------------
-    def _to_tray(self, xy: np.ndarray) -> np.ndarray:
-        c, s = math.cos(self.tray_yaw), math.sin(self.tray_yaw)
-        d = np.asarray(xy)[..., :2] - self.tray_xy
-        return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
-
-    def _from_tray(self, uv: np.ndarray) -> np.ndarray:
-        c, s = math.cos(self.tray_yaw), math.sin(self.tray_yaw)
-        return self.tray_xy + np.stack([c * uv[..., 0] - s * uv[..., 1], s * uv[..., 0] + c * uv[..., 1]], -1)
-
-    def _in_tray(self, xy: np.ndarray) -> bool:
-        u, v = self._to_tray(xy)
-        return abs(u) < TRAY.inner_x / 2 and abs(v) < TRAY.inner_y / 2
+        self.tray = ContainerFrame(TRAY)
 
     # --- scene -----------------------------------------------------------------------------------
     def _build_scene(self, rng: np.random.Generator) -> None:
         half_diag = math.hypot(TRAY.inner_x / 2 + 0.01, TRAY.inner_y / 2 + 0.01)
-        (self.tray_xy,) = self._sample_positions(rng, 1, padding=half_diag, min_distance=0.0)
-        self.tray_yaw = float(rng.uniform(0, math.pi))
-        add_container(self.sim, TRAY, *self.tray_xy, self.tray_yaw)
+        (xy,) = self._sample_positions(rng, 1, padding=half_diag, min_distance=0.0)
+        self.tray = ContainerFrame(TRAY, (float(xy[0]), float(xy[1])), float(rng.uniform(0, math.pi)))
+        add_container(self.sim, TRAY, *self.tray.xy, self.tray.yaw)
         ws, outer = self.workspace, np.array([TRAY.inner_x / 2 + 0.01, TRAY.inner_y / 2 + 0.01])
         placed: list[np.ndarray] = []
         for _ in range(self.num_objects):
             for _ in range(200):
                 p = rng.uniform(ws.x_min + BOTTLE_DISTANCE / 2, ws.x_min + ws.size - BOTTLE_DISTANCE / 2, size=2)
                 p[1] += ws.y_min - ws.x_min
-                away_from_tray = np.any(np.abs(self._to_tray(p)) > outer + TRAY_MARGIN)
+                away_from_tray = np.any(np.abs(self.tray.to_local(p)) > outer + TRAY_MARGIN)
                 if away_from_tray and all(np.linalg.norm(p - q) > BOTTLE_DISTANCE for q in placed):
                     placed.append(p)
                     break
@@ -80,7 +65,7 @@ class BottleArrangementEnv(PickPlaceEnv):
         for o in self.sim.objects:
             pos = self.sim.pose(o.body)[0]
             on_floor = pos[2] - o.half_extents[2] < TRAY.floor_top + 0.01
-            if not (self._in_tray(pos) and on_floor and self.sim.tilt(o.body) < MAX_TILT):
+            if not (self.tray.contains(pos) and on_floor and self.sim.tilt(o.body) < MAX_TILT):
                 return False
         return True
 
@@ -90,19 +75,19 @@ class BottleArrangementEnv(PickPlaceEnv):
         first free slot with the fingers along the tray diagonal (clear of the neighbours)."""
         held = self.holding
         if held is None:
-            outside = [o for o in self._scene_objects() if not self._in_tray(self.sim.pose(o.body)[0])]
+            outside = [o for o in self._scene_objects() if not self.tray.contains(self.sim.pose(o.body)[0])]
             target = (outside or self._scene_objects())[0]
             x, y = self.sim.pose(target.body)[0][:2]
-            u, v = np.abs(self._to_tray(np.array([x, y])))
+            u, v = np.abs(self.tray.to_local(np.array([x, y])))
             beyond_ends = u - TRAY.inner_x / 2 > v - TRAY.inner_y / 2
-            yaw = self.tray_yaw + (math.pi / 2 if beyond_ends else 0.0)
+            yaw = self.tray.yaw + (math.pi / 2 if beyond_ends else 0.0)
             return PrimitiveTarget(x, y, self.snap_yaw(yaw % math.pi))
         slot = self._free_slot()
-        return self._place_held_with_yaw(slot[0], slot[1], (self.tray_yaw + math.pi / 4) % math.pi)
+        return self._place_held_with_yaw(slot[0], slot[1], (self.tray.yaw + math.pi / 4) % math.pi)
 
     def _free_slot(self) -> np.ndarray:
         """World xy of the first slot with no bottle within 3 cm."""
-        slots = self._from_tray(SLOTS)
+        slots = self.tray.to_world(SLOTS)
         bottles = [self.sim.pose(o.body)[0][:2] for o in self._scene_objects()]
         for s in slots:
             if all(np.linalg.norm(s - b) > 0.03 for b in bottles):
