@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -382,9 +383,11 @@ class PickPlaceEnv(gym.Env):
         min_distance: float,
         existing: list | None = None,
         tries: int = 100,
+        accept: Callable[[np.ndarray], bool] | None = None,
     ) -> list[np.ndarray]:
         """``count`` xy points uniform in the workspace shrunk by ``padding``, pairwise (and to
-        ``existing``) farther apart than ``min_distance`` (m). Raises SpawnError."""
+        ``existing``) farther apart than ``min_distance`` (m), each passing ``accept`` when given
+        (e.g. "away from the tray"). Raises SpawnError."""
         ws = self.workspace
         taken = [np.asarray(p, dtype=np.float64)[:2] for p in (existing or [])]
         out = []
@@ -394,7 +397,7 @@ class PickPlaceEnv(gym.Env):
                     rng.uniform(ws.x_min + padding, ws.x_min + ws.size - padding),
                     rng.uniform(ws.y_min + padding, ws.y_min + ws.size - padding),
                 ])
-                if all(np.linalg.norm(p - q) > min_distance for q in taken):
+                if (accept is None or accept(p)) and all(np.linalg.norm(p - q) > min_distance for q in taken):
                     break
             else:
                 raise SpawnError("no free position")

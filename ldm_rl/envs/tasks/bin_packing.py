@@ -41,17 +41,10 @@ class BinPackingEnv(PickPlaceEnv):
         (xy,) = self._sample_positions(rng, 1, padding=float(np.hypot(*outer)), min_distance=0.0)
         self.bin = ContainerFrame(BIN, (float(xy[0]), float(xy[1])), float(rng.uniform(0, math.pi)))
         add_container(self.sim, BIN, *self.bin.xy, self.bin.yaw)
-        ws, placed = self.workspace, []
-        lo, hi = 0.035, ws.size - 0.035
-        for _ in range(self.num_objects):
-            for _ in range(200):
-                p = np.array([ws.x_min, ws.y_min]) + rng.uniform(lo, hi, size=2)
-                away = np.any(np.abs(self.bin.to_local(p)) > outer + BIN_MARGIN)
-                if away and all(np.linalg.norm(p - q) > BLOCK_DISTANCE for q in placed):
-                    placed.append(p)
-                    break
-            else:
-                raise SpawnError("no room for the blocks")
+        placed = self._sample_positions(
+            rng, self.num_objects, padding=0.035, min_distance=BLOCK_DISTANCE, tries=200,
+            accept=lambda p: bool(np.any(np.abs(self.bin.to_local(p)) > outer + BIN_MARGIN)),
+        )
         shapes = rng.permutation(np.resize(np.arange(len(BIN_BLOCKS)), self.num_objects))
         for p, k in zip(placed, shapes):
             spawn(self.sim, BIN_BLOCKS[k], p[0], p[1], rng.uniform(0, 2 * math.pi))

@@ -37,18 +37,11 @@ class BottleArrangementEnv(PickPlaceEnv):
         (xy,) = self._sample_positions(rng, 1, padding=half_diag, min_distance=0.0)
         self.tray = ContainerFrame(TRAY, (float(xy[0]), float(xy[1])), float(rng.uniform(0, math.pi)))
         add_container(self.sim, TRAY, *self.tray.xy, self.tray.yaw)
-        ws, outer = self.workspace, np.array([TRAY.inner_x / 2 + 0.01, TRAY.inner_y / 2 + 0.01])
-        placed: list[np.ndarray] = []
-        for _ in range(self.num_objects):
-            for _ in range(200):
-                p = rng.uniform(ws.x_min + BOTTLE_DISTANCE / 2, ws.x_min + ws.size - BOTTLE_DISTANCE / 2, size=2)
-                p[1] += ws.y_min - ws.x_min
-                away_from_tray = np.any(np.abs(self.tray.to_local(p)) > outer + TRAY_MARGIN)
-                if away_from_tray and all(np.linalg.norm(p - q) > BOTTLE_DISTANCE for q in placed):
-                    placed.append(p)
-                    break
-            else:
-                raise SpawnError("no room for the bottles")
+        outer = np.array([TRAY.inner_x / 2 + 0.01, TRAY.inner_y / 2 + 0.01])
+        placed = self._sample_positions(
+            rng, self.num_objects, padding=BOTTLE_DISTANCE / 2, min_distance=BOTTLE_DISTANCE, tries=200,
+            accept=lambda p: bool(np.any(np.abs(self.tray.to_local(p)) > outer + TRAY_MARGIN)),
+        )
         for p in placed:
             spawn(self.sim, BOTTLES[rng.integers(len(BOTTLES))], p[0], p[1], rng.uniform(0, 2 * math.pi))
 
