@@ -23,7 +23,7 @@ import torch
 from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
 
-from ldm_rl.models import build_dynamics_model, count_parameters
+from ldm_rl.world_model import build_dynamics_model, count_parameters
 from ldm_rl.objectives import LDMLoss
 
 MAX_HEIGHT = 0.15

@@ -36,6 +36,9 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "HEIGHTMAP_SIZE",
+    "HAND_SIZE",
+    "NUM_ROTATIONS",
     "Workspace",
     "rotation_angles",
     "bin_to_angle",
@@ -51,6 +54,10 @@ __all__ = [
     "heights_to_classes",
     "classes_to_heights",
 ]
+
+HEIGHTMAP_SIZE = 128  # pixels per side of the heightmap (0.4 m / 3.125 mm)
+HAND_SIZE = 24  # pixels per side of the in-hand image
+NUM_ROTATIONS = 8  # default R: rotation bins k·π/R
 
 _MODES = ("bilinear", "nearest")
 _SNAP = 2.0**20  # residual-angle grid, in fractions of a quarter turn

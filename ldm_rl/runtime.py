@@ -24,6 +24,7 @@ __all__ = [
     "atomic_write_text",
     "hydra_output_dir",
     "make_logger",
+    "eval_mode",
 ]
 
 
@@ -134,3 +135,21 @@ def make_logger(cfg: Mapping[str, Any] | None, log_dir: str | os.PathLike):
         except ImportError as err:  # pragma: no cover - depends on the optional extra
             raise ImportError("logger=tensorboard needs: pip install 'ldm_rl[tensorboard]'") from err
     raise ValueError(f"logger.backend must be one of csv, tensorboard, none; got {backend!r}")
+
+
+@contextlib.contextmanager
+def eval_mode(*modules: torch.nn.Module) -> Iterator[None]:
+    """Run the block with every module (and submodule) in eval mode and without gradients, then give
+    each submodule back the train/eval flag it had (BatchNorm statistics stay untouched).
+
+    Used by every prediction made for acting, planning, targets, foresight and imagination.
+    """
+    flags = [(m, m.training) for module in modules for m in module.modules()]
+    try:
+        for module in modules:
+            module.eval()
+        with torch.no_grad():
+            yield
+    finally:
+        for m, training in flags:
+            m.training = training

@@ -51,7 +51,7 @@ def main(cfg: DictConfig) -> dict:
     import torch
 
     from ldm_rl.metrics import MetricSettings
-    from ldm_rl.models import build_dynamics_model, count_parameters
+    from ldm_rl.world_model import build_dynamics_model, count_parameters
     from ldm_rl.objectives import LDMLoss
     from ldm_rl.runtime import atomic_write_text, hydra_output_dir, make_logger, resolve_device, seed_everything, set_threads
     from ldm_rl.world_model.training import REQUIRED_KEYS, model_label, split_transitions, train_dynamics

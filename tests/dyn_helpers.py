@@ -6,7 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from ldm_rl.models import build_dynamics_model
+from ldm_rl.world_model import build_dynamics_model
 
 MAX_HEIGHT = 0.15
 TINY = {"name": "ldm", "preset": "lite", "width": 0.125, "crop_size": 64, "num_depth_classes": 21, "num_rotations": 8}

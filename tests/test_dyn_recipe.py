@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.mark.parametrize("model, name, crop", [("ldm64", "ldm", 64), ("ldm128", "ldm", 128), ("naive", "naive", 64)])
 def test_model_configs_compose_and_build(model, name, crop):
-    from ldm_rl.models import build_dynamics_model
+    from ldm_rl.world_model import build_dynamics_model
 
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose(config_name="config", overrides=[f"model={model}", "model.width=0.125"])
@@ -24,7 +24,7 @@ def test_model_configs_compose_and_build(model, name, crop):
 
 
 def test_paper_preset_builds_the_reference_widths():
-    from ldm_rl.models import build_dynamics_model, count_parameters
+    from ldm_rl.world_model import build_dynamics_model, count_parameters
 
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose(config_name="config", overrides=["model.preset=paper", "model.num_depth_classes=11"])

@@ -37,7 +37,7 @@ from ldm_rl.envs.physics import BodyInfo, PhysicsConfig, Simulation
 
 __all__ = ["PickPlaceEnv", "ExpertNoise", "PrimitiveTarget", "SpawnError", "IN_HAND_SIZE"]
 
-IN_HAND_SIZE = 24
+IN_HAND_SIZE = geometry.HAND_SIZE
 PLACE_CLEARANCE = 0.005  # m between the held object's bottom and the surface below when released
 MAX_SPAWN_TRIES = 100
 

@@ -1,7 +1,10 @@
-"""Networks of ldm_rl: the LDM depth UNet, its two-head router, and the model factory."""
+"""Pure ``nn.Module`` networks of ldm_rl (no TorchRL, nothing from the layers above).
 
+The LDM depth UNet and its two-head router; the Q FCN and V CNN of the agent.
+"""
+
+from ldm_rl.models.blocks import count_parameters
 from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet, encode_depth_inputs
-from ldm_rl.models.factory import PRESET_WIDTHS, build_dynamics_model, count_parameters
 from ldm_rl.models.unet import DepthUNet
 
-__all__ = ["DepthUNet", "TwoHeadDynamicsNet", "encode_depth_inputs", "build_dynamics_model", "count_parameters", "PRESET_WIDTHS"]
+__all__ = ["DepthUNet", "TwoHeadDynamicsNet", "encode_depth_inputs", "count_parameters"]

@@ -5,6 +5,7 @@
 """
 
 from ldm_rl.world_model.core import DynamicsModel, DynamicsPrediction, HandStateRule, validate_state_action
+from ldm_rl.world_model.factory import PRESET_WIDTHS, build_dynamics_model, count_parameters
 
 _LAZY = {
     "make_dynamics_module": "ldm_rl.world_model.modules",
@@ -13,7 +14,8 @@ _LAZY = {
     "LDMImaginedEnv": "ldm_rl.world_model.imagined_env",
 }
 
-__all__ = ["DynamicsModel", "DynamicsPrediction", "HandStateRule", "validate_state_action", *_LAZY]
+__all__ = ["DynamicsModel", "DynamicsPrediction", "HandStateRule", "validate_state_action", "build_dynamics_model",
+           "count_parameters", "PRESET_WIDTHS", *_LAZY]
 
 
 def __getattr__(name):

@@ -26,8 +26,8 @@ from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet
 
 __all__ = ["HandStateRule", "DynamicsPrediction", "DynamicsModel", "validate_state_action", "HEIGHTMAP_SIZE", "HAND_SIZE"]
 
-HEIGHTMAP_SIZE = 128
-HAND_SIZE = 24
+HEIGHTMAP_SIZE = geometry.HEIGHTMAP_SIZE
+HAND_SIZE = geometry.HAND_SIZE
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+from ldm_rl.models.blocks import count_parameters
+from ldm_rl.world_model.core import DynamicsModel, HandStateRule
+
 __all__ = ["PRESET_WIDTHS", "build_dynamics_model", "count_parameters"]
 
 # channel multiplier of each preset; ``lite`` reads ``cfg.width`` (default below)
@@ -20,7 +23,6 @@ def build_dynamics_model(cfg: Mapping[str, Any], max_height: float):
     ``max_height``: metres of the top depth class (``cfg.env.max_height``).
     """
     from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet
-    from ldm_rl.world_model.core import DynamicsModel, HandStateRule
 
     name = cfg.get("name", "ldm")
     if name not in MODEL_NAMES:
@@ -44,6 +46,3 @@ def build_dynamics_model(cfg: Mapping[str, Any], max_height: float):
     )
 
 
-def count_parameters(module) -> int:
-    """Number of trainable parameters."""
-    return sum(p.numel() for p in module.parameters() if p.requires_grad)

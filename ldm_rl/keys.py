@@ -1,0 +1,49 @@
+"""TensorDict key names shared by every module (one place), and one check for missing keys.
+
+Root = the current state, ``("next", …)`` = the state after the action, as TorchRL does.
+
+======================  ==============================================  =========================
+key                     shape / dtype                                   meaning
+======================  ==============================================  =========================
+``heightmap``           ``[*B, 1, 128, 128]`` float32, metres           top-down heights
+``in_hand``             ``[*B, 1, 24, 24]`` float32, metres             held object's image
+``holding``             ``[*B, 1]`` bool                                hand holds an object
+``action``              ``[*B, 3]`` int64 (row, col, rot bin)           the primitive's pose
+``reward``              ``[*B, 1]`` float32                             (under ``"next"``)
+``action_value``        ``[*B, R, 128, 128]`` float32                   Q map, current primitive
+``state_value``         ``[*B, 1]`` float32                             V(s)
+``candidate_actions``   ``[*B, N, 3]`` int64                            the planner's N proposals
+``candidate_values``    ``[*B, N]`` float32                             V(f(s, a)) of each
+``next_logits``         ``[*B, K, S, S]`` float32                       LDM frame logits
+======================  ==============================================  =========================
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+__all__ = [
+    "HEIGHTMAP", "IN_HAND", "HOLDING", "ACTION", "REWARD", "DONE", "TERMINATED", "TRUNCATED", "NEXT",
+    "ACTION_VALUE", "STATE_VALUE", "CANDIDATE_ACTIONS", "CANDIDATE_VALUES", "NEXT_LOGITS",
+    "PRED_HEIGHTMAP", "PRED_IN_HAND", "PRED_HOLDING", "STATE_KEYS", "next_key", "require_keys",
+]
+
+HEIGHTMAP, IN_HAND, HOLDING, ACTION = "heightmap", "in_hand", "holding", "action"
+REWARD, DONE, TERMINATED, TRUNCATED, NEXT = "reward", "done", "terminated", "truncated", "next"
+ACTION_VALUE, STATE_VALUE = "action_value", "state_value"
+CANDIDATE_ACTIONS, CANDIDATE_VALUES, NEXT_LOGITS = "candidate_actions", "candidate_values", "next_logits"
+PRED_HEIGHTMAP, PRED_IN_HAND, PRED_HOLDING = "pred_heightmap", "pred_in_hand", "pred_holding"
+STATE_KEYS = (HEIGHTMAP, IN_HAND, HOLDING)
+
+
+def next_key(key: str) -> tuple[str, str]:
+    """``"heightmap" -> ("next", "heightmap")``."""
+    return (NEXT, key)
+
+
+def require_keys(tensordict, keys: Iterable, who: str) -> None:
+    """Raise one ``ValueError`` naming every key of ``keys`` missing from ``tensordict`` (nested keys ok)."""
+    present = set(tensordict.keys(include_nested=True))
+    missing = [key for key in keys if key not in present]
+    if missing:
+        raise ValueError(f"{who} input is missing keys {missing}; it has {sorted(map(str, present))}")
