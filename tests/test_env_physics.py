@@ -171,19 +171,38 @@ def test_tipped_roof_terminates_house_building():
         env.close()
 
 
-def test_bin_packing_reward_is_terminal_pile_height_margin():
+def test_bin_packing_pile_reward_is_inversely_proportional_to_the_pile_top():
+    from ldm_rl.envs.tasks.bin_packing import MIN_PILE_TOP, pile_reward
+
+    assert MIN_PILE_TOP == pytest.approx(0.03)
+    tops = [MIN_PILE_TOP - 5e-4, MIN_PILE_TOP, 0.05, 0.09, 0.1, 0.12, 0.2, 0.5, 1.0, 10.0]
+    rewards = [pile_reward(t) for t in tops]
+    assert all(0.0 < r <= 1.0 for r in rewards)
+    assert rewards[0] == rewards[1] == 1.0  # sub-mm contact penetration is clipped
+    assert all(a > b for a, b in zip(rewards[1:], rewards[2:]))  # strictly smaller for taller piles
+    for top, r in zip(tops[1:], rewards[1:]):
+        assert r * top == pytest.approx(MIN_PILE_TOP)  # reward · top is constant
+
+
+def test_bin_packing_expert_successes_earn_a_positive_reward_that_falls_with_the_pile():
     from ldm_rl.envs.episodes import run_expert_episode
-    from ldm_rl.envs.tasks.bin_packing import BIN
+    from ldm_rl.envs.tasks.bin_packing import pile_reward
 
     env = gym.make("ldm_rl/BinPacking-v0").unwrapped
     try:
-        episode = run_expert_episode(env, seed=2)
-        assert episode[-1].terminated and env._is_success()
-        assert all(t.reward == 0.0 for t in episode[:-1])
-        assert episode[-1].reward == pytest.approx(100 * (BIN.height - env.pile_top()))
-        assert BIN.height - 0.05 < env.pile_top() < BIN.height + 0.05
+        results = []  # (pile top, terminal reward); seeds 0 and 1 pile higher than the bin (> 0.10 m)
+        for seed in (0, 1, 2, 3):
+            episode = run_expert_episode(env, seed=seed)
+            assert episode[-1].terminated and env._is_success()
+            assert all(t.reward == 0.0 for t in episode[:-1])
+            assert 0.0 < episode[-1].reward <= 1.0
+            assert episode[-1].reward == pytest.approx(pile_reward(env.pile_top()))
+            results.append((env.pile_top(), episode[-1].reward))
     finally:
         env.close()
+    results.sort()
+    assert results[0][0] < results[-1][0] - 0.01  # the episodes differ in height
+    assert all(r1 > r2 for (_, r1), (_, r2) in zip(results, results[1:]))
 
 
 def test_resets_do_not_accumulate_bodies():

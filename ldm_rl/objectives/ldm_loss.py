@@ -9,6 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
+from ldm_rl.keys import ACTION, HEIGHTMAP, HOLDING, IN_HAND, next_key, require_keys
 from ldm_rl.objectives.focal import depth_class_weights, focal_loss
 from ldm_rl.world_model.core import DynamicsModel, validate_state_action
 
@@ -24,11 +25,12 @@ class LDMLoss(LossModule):
     Args:
         dynamics: the :class:`DynamicsModel` to train (a child module: ``loss.parameters()`` are its
             parameters).
-        gamma: focal exponent (0 = weighted cross-entropy, the released code's choice).
-        class_weights: None (all 1), a [K] tensor, or ``"auto"``: the reference's rule
+        gamma: focal exponent, default 2 (0 = weighted cross-entropy, the released code's choice).
+        class_weights: default None (all 1), or a [K] tensor, or ``"auto"``: the reference's rule
             ``w_c = max(1, ln(0.05·N/n_c))`` from the target class counts accumulated over every batch
-            seen in training mode (buffer ``class_counts``; fixed in eval mode).
-        label_smoothing: ε of the smoothed target distribution.
+            seen in training mode (buffer ``class_counts``; fixed in eval mode). ``conf/loss/focal.yaml``
+            (the recipes) sets ``"auto"``.
+        label_smoothing: ε of the smoothed target distribution, default 0.
 
     Returns a TensorDict with ``loss_dynamics`` (scalar) and diagnostics ``pixel_accuracy`` (argmax ==
     target over the frame) and ``changed_pixel_accuracy`` (the same over pixels whose class changes).
@@ -38,11 +40,11 @@ class LDMLoss(LossModule):
     class _AcceptedKeys:
         """Input keys; change them with ``loss.set_keys(heightmap=..., next_heightmap=...)``."""
 
-        heightmap: NestedKey = "heightmap"
-        in_hand: NestedKey = "in_hand"
-        holding: NestedKey = "holding"
-        action: NestedKey = "action"
-        next_heightmap: NestedKey = ("next", "heightmap")
+        heightmap: NestedKey = HEIGHTMAP
+        in_hand: NestedKey = IN_HAND
+        holding: NestedKey = HOLDING
+        action: NestedKey = ACTION
+        next_heightmap: NestedKey = next_key(HEIGHTMAP)
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -80,9 +82,7 @@ class LDMLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         k = self.tensor_keys
-        missing = [key for key in self.in_keys if key not in tensordict.keys(include_nested=True)]
-        if missing:
-            raise ValueError(f"LDMLoss input is missing keys {missing}")
+        require_keys(tensordict, self.in_keys, "LDMLoss")
         heightmap, action = tensordict.get(k.heightmap), tensordict.get(k.action)
         next_heightmap = tensordict.get(k.next_heightmap)
         if not torch.is_tensor(next_heightmap) or next_heightmap.shape != heightmap.shape or not torch.isfinite(next_heightmap).all():

@@ -4,7 +4,11 @@ On a ``TransformedEnv`` each step writes ``pred_heightmap``, ``pred_in_hand``, `
 the step's ``next`` data, i.e. the rollout holds ``("next", "pred_heightmap")`` beside
 ``("next", "heightmap")``; after ``step_mdp`` they also appear at the root, so ``reset`` writes zeros
 ("no prediction yet") under the same keys. On a replay buffer (``rb.append_transform(...)``) every
-sampled transition gets the same ``("next", pred_*)`` entries. Predictions carry no gradient.
+sampled transition gets the same ``("next", pred_*)`` entries. Predictions run under
+``ldm_rl.runtime.eval_mode(model)`` (eval mode, no gradient; the model's train/eval flags are given back
+afterwards, so foresight during training leaves the BatchNorm running statistics untouched), and
+the ``eval()`` TorchRL applies to a transform when it joins an env or a replay buffer does not reach the
+model (see :meth:`ForesightTransform.train`).
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from ldm_rl.keys import NEXT, require_keys
+from ldm_rl.runtime import eval_mode
 from ldm_rl.world_model.core import DynamicsModel
 from ldm_rl.world_model.modules import FORESIGHT_KEYS, STATE_KEYS
 
@@ -44,18 +50,29 @@ class ForesightTransform(Transform):
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.model = model
 
-    @torch.no_grad()
+    def train(self, mode: bool = True) -> "ForesightTransform":
+        """Set the transform's own train/eval flag but leave the model's flags as they are.
+
+        TorchRL calls ``transform.eval()`` when a transform joins a ``TransformedEnv`` or a replay buffer
+        (``append_transform``); ``nn.Module.eval`` would recurse into the shared model and silently switch
+        the model being trained to eval mode. Predictions run in eval mode anyway (``_predict``).
+        """
+        flags = [(m, m.training) for m in self.model.modules()]
+        super().train(mode)
+        for m, training in flags:
+            m.training = training
+        return self
+
     def _predict(self, tensordict: TensorDictBase) -> dict:
-        missing = [k for k in self.in_keys if k not in tensordict.keys(include_nested=True)]
-        if missing:
-            raise ValueError(f"ForesightTransform input is missing keys {missing}")
-        pred = self.model.predict(*(tensordict.get(k) for k in self.in_keys))
+        require_keys(tensordict, self.in_keys, "ForesightTransform")
+        with eval_mode(self.model):
+            pred = self.model.predict(*(tensordict.get(k) for k in self.in_keys))
         return dict(zip(self.out_keys, pred[:3]))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Replay-buffer path: add ``("next", pred_*)`` to a batch of transitions."""
         for key, value in self._predict(tensordict).items():
-            tensordict.set(("next", key), value)
+            tensordict.set((NEXT, key), value)
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
