@@ -1,16 +1,23 @@
 """Generate scripted-expert demonstrations for ``cfg.env`` and save them to ``cfg.demos.out``.
 
     python recipes/generate_demos.py env=house_building demos.num_steps=5000
-    python recipes/generate_demos.py env=bottle_arrangement env.num_objects=4 demos.num_episodes=100 \\
+    python recipes/generate_demos.py env=bottle_arrangement env.num_objects=4 demos.num_steps=null demos.num_episodes=100 \\
         demos.noise.position=0 demos.noise.random_action_prob=0 demos.out=data/bottles4_expert
+
+Exactly one of ``demos.num_steps`` / ``demos.num_episodes`` (the other null): both set is rejected before
+anything runs. The folder is written atomically in the verified format of ``ldm_rl.data.demos``
+(float32 heights: loading it gives the in-process data bit for bit).
 """
 
 from __future__ import annotations
 
 import logging
+import sys
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
+
+from ldm_rl.config_schema import check_command_line, validate_config  # registers the schema
 
 log = logging.getLogger(__name__)
 
@@ -22,13 +29,14 @@ def main(cfg: DictConfig) -> None:
     from ldm_rl.data.demos import collect_demos, save_demos
     from ldm_rl.runtime import hydra_output_dir, seed_everything, set_threads
 
+    validate_config(cfg)  # each job of a sweep; a single run was checked before Hydra started
     set_threads(cfg.threads)
     seed_everything(cfg.seed)
     demos = cfg.demos
-    out = Path(demos.out) if demos.out else hydra_output_dir() / "demos"
+    out = Path(hydra.utils.to_absolute_path(str(demos.out))) if demos.out else hydra_output_dir() / "demos"
     td = collect_demos(
         OmegaConf.to_container(cfg.env, resolve=True),
-        num_steps=demos.num_steps if demos.num_episodes is None else None,
+        num_steps=demos.num_steps,
         num_episodes=demos.num_episodes,
         seed=cfg.seed,
         procedure=demos.procedure,
@@ -42,4 +50,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    sys.argv = check_command_line(__file__)
     main()

@@ -4,22 +4,35 @@
     python recipes/train_dynamics.py model=naive dynamics.iterations=1000
     python recipes/train_dynamics.py dynamics.data=demos/block_stacking model.preset=paper device=cuda
     python recipes/train_dynamics.py -m experiment=table1_block_stacking model=ldm64,ldm128,naive seed=0,1,2
+    python recipes/train_dynamics.py resume=true hydra.run.dir=outputs/2025-01-01/12-00-00   # continue a run
 
-Writes to the Hydra run directory: metrics.csv, the TorchRL logger's scalars, checkpoint.pt,
-final_metrics.json, sr_vs_iteration.png and predictions.png (before | predicted | true | |error|).
+Writes to the Hydra run directory: metrics.csv, the TorchRL logger's scalars, checkpoint.pt (every
+dynamics.checkpoint_every iterations, at the end, and on SIGINT/SIGTERM), final_metrics.json,
+sr_vs_iteration.png and predictions.png (before | predicted | true | |error|).
+
+Resume: ``resume=true hydra.run.dir=<the run's folder>`` replays the run's own overrides (from its
+``.hydra/overrides.yaml``) and continues from its checkpoint; the result equals an uninterrupted run's
+bit for bit. A sweep resumes by rerunning its command with ``resume=true`` (each job continues its own
+folder). Loading a trained model: ``ldm_rl.world_model.factory.load_dynamics_checkpoint(path)``.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import sys
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from ldm_rl.config_schema import ConfigError, check_command_line, config_differences, validate_config  # registers the schema
+
+CHECKPOINT = "checkpoint.pt"
+
 
 def load_transitions(cfg: DictConfig):
-    """The demo TensorDict: ``cfg.dynamics.data`` if set, else ``num_demo_steps`` noisy expert steps
-    collected now with the ``cfg.demos`` noise/procedure."""
+    """The demo TensorDict: ``cfg.dynamics.data`` (verified by ``load_demos``) if set, else
+    ``num_demo_steps`` noisy expert steps collected now with the ``cfg.demos`` noise/procedure."""
     if cfg.dynamics.data:
         from ldm_rl.data.demos import load_demos
 
@@ -46,30 +59,105 @@ def _env_choice() -> str:
         return "unknown"
 
 
+def _short(path) -> str:
+    rel = os.path.relpath(path)
+    return path if rel.startswith("..") else rel
+
+
+def resume_hint(out_dir) -> str:
+    """The command that continues this run."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    try:
+        multirun = HydraConfig.get().mode == RunMode.MULTIRUN
+    except ValueError:
+        multirun = False
+    if multirun:
+        return "rerun the sweep's command with resume=true (same hydra.sweep.dir)"
+    return f"python {_short(os.path.abspath(__file__))} resume=true hydra.run.dir={_short(str(out_dir))}"
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> dict:
+    from ldm_rl.checkpoint import CheckpointError, RunStopped
+    from ldm_rl.data.demos import DemoDataError
+    from ldm_rl.runtime import hydra_output_dir
+
+    try:
+        return train(cfg)
+    except RunStopped as stopped:
+        print(f"{stopped}; resume with: {resume_hint(hydra_output_dir())}", file=sys.stderr, flush=True)
+        raise SystemExit(stopped.exit_code) from None
+    except (ConfigError, CheckpointError, DemoDataError) as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"interrupted by SIGINT; the last checkpoint, if any, is in {_short(str(hydra_output_dir()))}", file=sys.stderr,
+              flush=True)
+        raise SystemExit(130) from None
+
+
+def train(cfg: DictConfig) -> dict:
+    """The run (``main`` without the one-line error reporting)."""
+    from ldm_rl.checkpoint import clean_stale_temporaries, read_checkpoint_meta
+    from ldm_rl.runtime import hydra_output_dir
+
+    validate_config(cfg)  # the command line was checked before Hydra started; this covers each job of a sweep
+    out_dir = hydra_output_dir()
+    config = OmegaConf.to_container(cfg, resolve=True)
+    removed = clean_stale_temporaries(out_dir)
+    if removed:
+        print(f"removed {len(removed)} temporary file(s) left by an interrupted save: {', '.join(p.name for p in removed)}")
+    checkpoint_path = out_dir / CHECKPOINT
+    resuming = checkpoint_path.is_file()
+    if resuming:
+        meta = read_checkpoint_meta(checkpoint_path)
+        if not cfg.resume:
+            raise ConfigError(f"{out_dir} already holds a run's checkpoint (iteration {meta.get('iteration')}/"
+                              f"{meta.get('iterations')}): continue it with resume=true, or choose another output folder")
+        diffs = config_differences(meta.get("config", {}), config)
+        if diffs:
+            raise ConfigError(f"resume=true: this command's config differs from the run's in {checkpoint_path}: "
+                              f"{'; '.join(diffs[:6])} (a resumed run keeps its config)")
+    elif cfg.resume:
+        print(f"resume=true: no checkpoint in {_short(str(out_dir))} yet; starting from iteration 0", flush=True)
+
     import torch
 
+    import ldm_rl
+    from ldm_rl.checkpoint import CheckpointError, StopSignals, load_checkpoint
     from ldm_rl.metrics import MetricSettings
-    from ldm_rl.world_model import build_dynamics_model, count_parameters
     from ldm_rl.objectives import LDMLoss
-    from ldm_rl.runtime import atomic_write_text, hydra_output_dir, make_logger, resolve_device, seed_everything, set_threads
-    from ldm_rl.world_model.training import REQUIRED_KEYS, model_label, split_transitions, train_dynamics
+    from ldm_rl.runtime import atomic_write_text, make_logger, resolve_device, seed_everything, set_threads
+    from ldm_rl.world_model import build_dynamics_model, count_parameters
+    from ldm_rl.world_model.training import REQUIRED_KEYS, data_fingerprint, model_label, split_transitions, train_dynamics
 
     set_threads(cfg.threads)
     seed_everything(int(cfg.seed))
     device = resolve_device(cfg.device)
-    out_dir = hydra_output_dir()
     data = load_transitions(cfg)
     missing = [key for key in REQUIRED_KEYS if key not in data.keys(include_nested=True)]
     if missing:
-        raise ValueError(f"demo data lacks keys {missing}; see the data contract in DESIGN.md")
-    meta = data.get_non_tensor("metadata") if "metadata" in data.keys() else None
-    if isinstance(meta, dict) and meta.get("env_id") not in (None, cfg.env.id):
-        raise ValueError(f"dynamics.data holds {meta['env_id']} demos but env={cfg.env.id}; pick the matching env/experiment")
+        from ldm_rl.data.demos import DemoDataError
+
+        raise DemoDataError(f"demo data lacks keys {missing}; see the data contract in ldm_rl/data/demos.py")
+    data_meta = data.get_non_tensor("metadata") if "metadata" in data.keys() else None
+    if isinstance(data_meta, dict) and data_meta.get("env_id") not in (None, cfg.env.id):
+        raise ConfigError(f"dynamics.data holds {data_meta['env_id']} demos but env.id={cfg.env.id}; pick the matching "
+                          "env/experiment")
+    fingerprint = data_fingerprint(data)
+    checkpoint = None
+    if resuming:
+        checkpoint = load_checkpoint(checkpoint_path, expect={"kind": "dynamics", "preset": str(cfg.model.preset),
+                                                              "task": str(cfg.env.id)}, map_location=device)
+        if checkpoint.meta.get("data_sha256") != fingerprint:
+            raise CheckpointError(f"checkpoint {checkpoint_path}: the run trained on other transitions than this command "
+                                  f"loads (data SHA-256 {str(checkpoint.meta.get('data_sha256'))[:12]}… vs "
+                                  f"{fingerprint[:12]}…): the demos changed since the run started")
     max_height = float(cfg.env.max_height)
     data = data.to(device)
-    train, val = split_transitions(data, float(cfg.dynamics.val_fraction), int(cfg.seed))
+    train_set, val = split_transitions(data, float(cfg.dynamics.val_fraction), int(cfg.seed))
     model = build_dynamics_model(cfg.model, max_height).to(device)
     class_weights = cfg.loss.class_weights
     if class_weights is not None and not isinstance(class_weights, str):
@@ -79,23 +167,31 @@ def main(cfg: DictConfig) -> dict:
     settings = MetricSettings(max_height=max_height, num_classes=model.num_classes, num_rotations=model.num_rotations,
                               **OmegaConf.to_container(cfg.dynamics.metrics))
     label, task = model_label(cfg.model), _env_choice()
-    print(f"{label} ({cfg.model.preset}, {count_parameters(model):,} params) on {task}: "
-          f"{train.shape[0]} train / {val.shape[0]} held-out transitions, device {device}", flush=True)
     d = cfg.dynamics
-    final = train_dynamics(
-        model, loss, train, val, out_dir=out_dir, settings=settings, iterations=int(d.iterations),
-        batch_size=int(d.batch_size), lr=float(d.lr), lr_decay=float(d.lr_decay), lr_decay_every=int(d.lr_decay_every),
-        weight_decay=float(d.weight_decay), eval_every=int(d.eval_every), eval_batch_size=int(d.eval_batch_size),
-        grid_samples=int(d.grid_samples), logger=make_logger(cfg.logger, out_dir), seed=int(cfg.seed),
-        autocast=d.get("autocast"),
-        extra_checkpoint={"config": OmegaConf.to_container(cfg, resolve=True), "max_height": max_height},
-    )
+    where = f", resuming at iteration {checkpoint.meta['iteration']}/{d.iterations}" if checkpoint else ""
+    print(f"{label} ({cfg.model.preset}, {count_parameters(model):,} params) on {task}: "
+          f"{train_set.shape[0]} train / {val.shape[0]} held-out transitions, device {device}, "
+          f"{torch.get_num_threads()} thread(s){where}", flush=True)
+    meta = {"kind": "dynamics", "preset": str(cfg.model.preset), "task": str(cfg.env.id), "model": label,
+            "seed": int(cfg.seed), "data_sha256": fingerprint, "config": config, "max_height": max_height,
+            "threads": torch.get_num_threads(), "device": str(device), "torch": torch.__version__,
+            "ldm_rl": ldm_rl.__version__}
+    with StopSignals() as stop:
+        final = train_dynamics(
+            model, loss, train_set, val, out_dir=out_dir, settings=settings, iterations=int(d.iterations),
+            batch_size=int(d.batch_size), lr=float(d.lr), lr_decay=float(d.lr_decay), lr_decay_every=int(d.lr_decay_every),
+            weight_decay=float(d.weight_decay), eval_every=int(d.eval_every), eval_batch_size=int(d.eval_batch_size),
+            grid_samples=int(d.grid_samples), logger=make_logger(cfg.logger, out_dir), seed=int(cfg.seed),
+            autocast=d.get("autocast"), checkpoint_every=int(d.checkpoint_every), checkpoint_meta=meta,
+            resume=checkpoint, stop=stop,
+        )
     summary = {"task": task, "model": label, "preset": str(cfg.model.preset), "seed": int(cfg.seed),
-               "train_transitions": int(train.shape[0]), "val_transitions": int(val.shape[0]), **final}
+               "train_transitions": int(train_set.shape[0]), "val_transitions": int(val.shape[0]), **final}
     atomic_write_text(out_dir / "final_metrics.json", json.dumps(summary, indent=2))
     print(f"done: SR {100 * final['sr']:.1f}%  L1 {final['l1_mm']:.2f} mm -> {out_dir}")
     return summary
 
 
 if __name__ == "__main__":
+    sys.argv = check_command_line(__file__, checkpoint_name=CHECKPOINT)
     main()

@@ -1,5 +1,8 @@
-"""The Hydra front door: conf/config.yaml composes, and every recipe honours Hydra's CLI."""
+"""The Hydra front door: conf/config.yaml composes, every recipe honours Hydra's CLI, and the typed schema
+(ldm_rl.config_schema) stops wrong types, out-of-range values and contradictions in one line, before any
+work and without an output folder."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -7,6 +10,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from ldm_rl import config_schema  # registers schema/config, as every recipe does at import
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -14,31 +20,71 @@ RECIPES = sorted(p for p in (ROOT / "recipes").glob("*.py") if not p.name.starts
 GROUPS = ("env", "model", "loss", "logger", "demos", "dynamics")
 
 
-def make_cfg(*overrides):
+def make_cfg(*overrides, config_name="config"):
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        return compose(config_name="config", overrides=list(overrides))
+        return compose(config_name=config_name, overrides=list(overrides))
 
 
 def test_config_composes_with_every_group_and_overrides():
     cfg = make_cfg("seed=3", "logger=tensorboard")
-    assert cfg.seed == 3 and cfg.device == "auto"
+    assert cfg.seed == 3 and cfg.device == "auto" and cfg.threads == 1 and cfg.resume is False
     assert cfg.logger.backend == "tensorboard"
     for group in GROUPS:
         assert group in cfg, f"config group {group!r} missing from conf/config.yaml"
+    config_schema.validate_config(cfg)
 
 
 @pytest.mark.parametrize("group", GROUPS)
-def test_every_option_of_every_group_composes(group):
+def test_every_option_of_every_group_composes_and_is_valid(group):
     options = sorted(p.stem for p in (CONF / group).glob("*.yaml"))
     assert options, f"conf/{group}/ has no options"
     for option in options:
-        make_cfg(f"{group}={option}")
+        cfg = make_cfg(f"{group}={option}")
+        config_schema.validate_config(cfg)
+        assert OmegaConf.select(cfg, f"hydra.runtime.choices.{group}", default=option) == option
+
+
+def _leaves(node, prefix=""):
+    for key, value in node.items():
+        if key == "defaults":
+            continue
+        if isinstance(value, dict):
+            yield from _leaves(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def _primary_config_of(preset_text: str) -> str:
+    """The primary config of the recipe a preset's header names (``python recipes/<name>.py``)."""
+    match = re.search(r"python recipes/(\w+)\.py", preset_text)
+    if not match:
+        return "config"
+    recipe = (ROOT / "recipes" / f"{match.group(1)}.py").read_text()
+    return re.search(r'config_name="(\w+)"', recipe).group(1)
 
 
 @pytest.mark.parametrize("preset", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
-def test_experiment_presets_compose(preset):
-    cfg = make_cfg(f"experiment={preset}")
-    assert cfg.seed is not None
+def test_experiment_presets_compose_and_set_what_they_say(preset):
+    """Each preset composes with its recipe's primary config, and every value it sets (and every group it
+    overrides) is in the composed config."""
+    file = CONF / "experiment" / f"{preset}.yaml"
+    text = file.read_text()
+    config_name = _primary_config_of(text)
+    cfg = make_cfg(f"experiment={preset}", config_name=config_name)
+    raw = OmegaConf.to_container(OmegaConf.load(file), resolve=False)
+    leaves = list(_leaves(raw))
+    assert leaves or raw.get("defaults"), f"{preset} sets nothing"
+    for key, value in leaves:
+        if isinstance(value, str) and "${" in value:
+            continue
+        assert OmegaConf.select(cfg, key) == value, f"{preset}: {key}"
+    for entry in raw.get("defaults", []):
+        for target, option in (entry.items() if isinstance(entry, dict) else []):
+            group = target.split()[-1].strip("/")
+            expected = OmegaConf.load(CONF / group / f"{option}.yaml")
+            assert cfg[group].get("id", None) == expected.get("id", None) and cfg[group].keys() >= expected.keys(), preset
+    if config_name == "config":
+        config_schema.validate_config(cfg)
 
 
 def test_unknown_option_is_rejected():
@@ -58,8 +104,15 @@ def run_recipe(recipe, *args, cwd):
     return subprocess.run([sys.executable, str(recipe), *args], cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
-def test_there_is_at_least_one_recipe():
-    assert RECIPES, "recipes/ holds no entry script"
+def test_every_documented_recipe_is_collected_here():
+    """The recipe tests below run for each file of recipes/: every recipe the README and docs mention is
+    one of them, and the main ones are Hydra apps (so they get the --help / --cfg checks)."""
+    text = (ROOT / "README.md").read_text() + "".join(p.read_text() for p in (ROOT / "docs").glob("*.md"))
+    documented = set(re.findall(r"recipes/(\w+\.py)", text))
+    names = {p.name for p in RECIPES}
+    assert documented and documented <= names, documented - names
+    hydra_apps = {p.name for p in RECIPES if "@hydra.main" in p.read_text()}
+    assert {"train_dynamics.py", "generate_demos.py"} <= hydra_apps
 
 
 @pytest.mark.parametrize("recipe", RECIPES, ids=lambda p: p.name)
@@ -69,10 +122,94 @@ def test_recipe_help_and_cfg_work_from_any_directory(recipe, tmp_path):
     if "@hydra.main" not in recipe.read_text():  # a plain report tool (argparse), e.g. aggregate_table1.py
         assert "usage:" in helped.stdout
         return
-    assert "Powered by Hydra" in helped.stdout and "env:" in helped.stdout
-    shown = run_recipe(recipe, "--cfg", "job", "seed=11", "logger=none", cwd=tmp_path)
+    assert "Powered by Hydra" in helped.stdout
+    config_name = re.search(r'config_name="(\w+)"', recipe.read_text()).group(1)
+    primary = (CONF / f"{config_name}.yaml").read_text()
+    groups = [g for g in ("env", "logger") if re.search(rf"^  - {g}:", primary, re.M)]
+    assert all(f"{g}:" in helped.stdout for g in groups)
+    required = []
+    if re.search(r"^checkpoint: \?\?\?", primary, re.M):  # evaluate.py: the one required key must name a file
+        (tmp_path / "checkpoint.pt").write_bytes(b"")
+        required = [f"checkpoint={tmp_path / 'checkpoint.pt'}"]
+    shown = run_recipe(recipe, "--cfg", "job", "seed=11", *required, *(["logger=none"] if "logger" in groups else []),
+                       cwd=tmp_path)
     assert shown.returncode == 0, shown.stderr
-    assert "seed: 11" in shown.stdout and "backend: none" in shown.stdout
+    assert "seed: 11" in shown.stdout and ("logger" not in groups or "backend: none" in shown.stdout)
+
+
+# --------------------------------------------------------------------------------- bad configs
+
+BAD_COMMANDS = [
+    ("train_dynamics.py", ["dynamics.iterations=abc", "--cfg", "job"],
+     "error: dynamics.iterations=abc: Value 'abc' of type 'str' could not be converted to Integer"),
+    ("train_dynamics.py", ["dynamics.lr=-1"], "error: dynamics.lr=-1.0 is out of range: must be in (0, 1] (Adam learning rate)"),
+    ("train_dynamics.py", ["env.num_objects=0"], "error: env.num_objects=0 is out of range: must be >= 1 (objects in the scene)"),
+    ("train_dynamics.py", ["dynamics.iterations=-1"], "error: dynamics.iterations=-1 is out of range: must be >= 1 (training iterations)"),
+    ("generate_demos.py", ["demos.num_episodes=3"],
+     "error: demos.num_steps=5000 and demos.num_episodes=3 are both set: give exactly one (e.g. demos.num_steps=null "
+     "demos.num_episodes=3)"),
+    ("train_dynamics.py", ["dynamics.iteration=300"], "Key 'iteration' not in 'DynamicsConfig'"),
+    ("train_dynamics.py", ["dynamics.data=demos/typo"], "error: dynamics.data='demos/typo' is invalid: must be null or an existing path"),
+    ("train_dynamics.py", ["resume=true"], "error: resume=true continues a run in its folder: add hydra.run.dir="),
+    ("generate_demos.py", ["resume=true"], "error: resume=true: generate_demos has nothing to resume"),
+]
+
+
+@pytest.mark.parametrize("recipe, args, expected", BAD_COMMANDS, ids=lambda x: " ".join(x) if isinstance(x, list) else None)
+def test_a_bad_config_stops_in_one_line_without_an_output_folder(recipe, args, expected, tmp_path):
+    done = run_recipe(ROOT / "recipes" / recipe, *args, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], done.stderr
+    assert list(tmp_path.iterdir()) == [], "a failed command must not leave files behind"
+
+
+def test_the_command_line_check_imports_no_torch():
+    code = (
+        "import sys\n"
+        "from ldm_rl.config_schema import check_command_line\n"
+        f"argv = [{str(ROOT / 'recipes' / 'train_dynamics.py')!r}, 'dynamics.lr=-1']\n"
+        "try:\n    check_command_line(argv[0], argv=argv, checkpoint_name='checkpoint.pt')\n"
+        "except SystemExit as stop:\n    assert stop.code == 2\n"
+        "assert 'torch' not in sys.modules, 'the pre-flight imported torch'\n"
+        "argv = argv[:1] + ['seed=4']\n"
+        "assert check_command_line(argv[0], argv=argv) == argv\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    (["model.crop_size=40"], "model.crop_size=40 is out of range: must be in [32, 128] and a multiple of 16"),
+    (["model.num_rotations=4"], "model.num_rotations=4 differs from env.num_rotations=8"),
+    (["loss.class_weights=[1,2]"], "loss.class_weights has 2 entries: must have model.num_depth_classes=21"),
+    (["device=gpu0"], "device='gpu0' is invalid: must be auto, cpu, cuda, cuda:N or mps"),
+    (["logger.backend=wandb"], "logger.backend='wandb' is invalid: must be one of 'csv', 'tensorboard', 'none'"),
+    (["dynamics.val_fraction=1.5", "threads=0"], "dynamics.val_fraction=1.5 is out of range: must be in (0, 1) (held-out "
+                                                   "fraction); threads=0 is out of range: must be in [1, 1024]"),
+    (["demos.num_steps=null"], "demos.num_steps and demos.num_episodes are both null: give exactly one"),
+    (["dynamics.autocast=fp8"], "dynamics.autocast='fp8' is invalid: must be one of null, 'bf16'"),
+])
+def test_validate_config_names_the_key_and_the_allowed_values(overrides, expected):
+    with pytest.raises(config_schema.ConfigError) as err:
+        config_schema.validate_config(make_cfg(*overrides))
+    assert str(err.value) == expected or str(err.value).startswith(expected)
+    assert "\n" not in str(err.value)
+
+
+def test_types_and_unknown_keys_fail_at_composition():
+    with pytest.raises(ConfigCompositionException):
+        make_cfg("dynamics.iterations=abc")
+    with pytest.raises(ConfigCompositionException):
+        make_cfg("dynamics.iteration=5")
+    with pytest.raises(config_schema.ConfigError, match="Key 'iteration' not in 'DynamicsConfig'"):
+        config_schema.validate_config(make_cfg("+dynamics.iteration=5"))  # Hydra's "+" adds keys to any node
+    # configs composed without the schema are typed by validate_config
+    # a config composed without the schema (a plain dict) is typed by validate_config
+    plain = OmegaConf.create(OmegaConf.to_container(make_cfg(), resolve=False))
+    OmegaConf.update(plain, "dynamics.iterations", "abc")
+    with pytest.raises(config_schema.ConfigError, match="dynamics.iterations: Value 'abc' of type 'str' could not be converted"):
+        config_schema.validate_config(plain)
 
 
 def test_multirun_over_seeds_gives_one_run_per_seed(tmp_path):

@@ -7,6 +7,9 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from ldm_rl import config_schema  # registers the schema, as the recipes do
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,15 +76,31 @@ def test_train_dynamics_recipe_smoke(tmp_path):
     assert rows[0].startswith("iteration,loss") and len(rows) == 3
     summary = json.loads((run_dir / "final_metrics.json").read_text())
     assert summary["model"] == "LDM(64)" and summary["task"] == "block_stacking" and 0 <= summary["sr"] <= 1
-    import torch
+    from ldm_rl.world_model.factory import load_dynamics_checkpoint
 
-    state = torch.load(run_dir / "checkpoint.pt", weights_only=False)
-    assert state["iteration"] == 4 and "model_state" in state
+    model, checkpoint = load_dynamics_checkpoint(run_dir, expect={"preset": "lite", "task": "ldm_rl/BlockStacking-v0"})
+    assert checkpoint.meta["iteration"] == 4 and checkpoint.meta["complete"] and checkpoint.meta["threads"] == 1
+    assert checkpoint.meta["config"]["model"]["width"] == 0.125 and model.frame_size == 64
+    assert {"model", "loss", "optimizer", "scheduler", "rng", "rows", "running", "iteration"} <= checkpoint.state.keys()
+    assert checkpoint.state["rows"][-1]["sr"] == summary["sr"]
 
 
-@pytest.mark.parametrize("task, iterations", [("block_stacking", 5000), ("house_building", 5000), ("bottle_arrangement", 10000), ("bin_packing", 10000)])
+TABLE1 = {"block_stacking": 5000, "house_building": 5000, "bottle_arrangement": 10000, "bin_packing": 10000}
+
+
+@pytest.mark.parametrize("task, iterations", sorted(TABLE1.items()))
 def test_table1_presets_follow_the_protocol(task, iterations):
+    """Each Table 1 preset: its task, 5k noisy expert steps, the paper's iterations, a 20 % held-out split,
+    and no model of its own (so `model=ldm64,ldm128,naive` sweeps the three rows)."""
+    env = OmegaConf.load(ROOT / "conf" / "env" / f"{task}.yaml")
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        cfg = compose(config_name="config", overrides=[f"experiment=table1_{task}", "model=naive"])
-    assert cfg.dynamics.num_demo_steps == 5000 and cfg.dynamics.iterations == iterations
-    assert cfg.env.max_height > 0 and cfg.model.name == "naive"
+        default = compose(config_name="config", overrides=[f"experiment=table1_{task}"])
+        for model in ("ldm64", "ldm128", "naive"):
+            cfg = compose(config_name="config", overrides=[f"experiment=table1_{task}", f"model={model}"])
+            plain = compose(config_name="config", overrides=[f"env={task}", f"model={model}"])
+            assert OmegaConf.to_container(cfg.model) == OmegaConf.to_container(plain.model), model
+    assert default.env.id == env.id and default.env.max_height == env.max_height and default.env.num_objects == env.num_objects
+    assert default.dynamics.num_demo_steps == 5000 and default.dynamics.iterations == iterations
+    assert default.dynamics.val_fraction == 0.2 and default.demos.noise.position > 0
+    assert default.model.name == "ldm" and default.model.crop_size == 64
+    config_schema.validate_config(default)

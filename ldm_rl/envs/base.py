@@ -92,6 +92,7 @@ class PickPlaceEnv(gym.Env):
         physics: PhysicsConfig | None = None,
         gripper: GripperConfig | None = None,
         settle_steps: int = 60,
+        reset_seed: int | None = None,
     ):
         if not isinstance(num_objects, int) or num_objects < 1:
             raise ValueError(f"num_objects must be a positive int, got {num_objects!r}")
@@ -125,6 +126,11 @@ class PickPlaceEnv(gym.Env):
         self._in_hand = np.zeros((IN_HAND_SIZE, IN_HAND_SIZE), np.float32)
         self._steps = 0
         self._expert_rng = np.random.default_rng(0)
+        if reset_seed is not None and (not isinstance(reset_seed, int) or reset_seed < 0):
+            raise ValueError(f"reset_seed must be a non-negative int or None, got {reset_seed!r}")
+        # with reset_seed, the k-th reset without an explicit seed uses seed reset_seed + k: the scene
+        # stream is a function of the episode index, which a resumed run sets back (episode_index)
+        self.reset_seed, self.episode_index = reset_seed, 0
 
     # --- task hooks ------------------------------------------------------------------------
     def _build_scene(self, rng: np.random.Generator) -> None:
@@ -185,6 +191,9 @@ class PickPlaceEnv(gym.Env):
 
     # --- gymnasium API -------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is None and self.reset_seed is not None:
+            seed = self.reset_seed + self.episode_index
+        self.episode_index += 1
         super().reset(seed=seed)
         self._spawn(self._build_scene)
         return self._observation(), {}

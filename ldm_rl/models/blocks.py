@@ -123,3 +123,67 @@ class CatConv(nn.Module):
 def count_parameters(module: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+# --------------------------------------------------------------------------------------------
+# Agent networks (Q FCN, V CNN): BatchNorm-free basic blocks and the shared height encoding
+# --------------------------------------------------------------------------------------------
+from ldm_rl import geometry as _geometry  # noqa: E402  (appended section)
+
+
+class BasicBlock(nn.Module):
+    """ResNet basic block without BatchNorm: 3×3 (stride s) → LReLU → 3×3, + shortcut, → LReLU.
+
+    [B, in_channels, H, W] -> [B, out_channels, H/s, W/s]. Convs carry no bias. The shortcut is a bare
+    strided 1×1 conv (no bias) whenever the stride or the channel count changes, else the identity.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int = 1) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=False)
+        self.conv2 = nn.Conv2d(out_channels, out_channels, 3, padding=1, bias=False)
+        self.act = nn.LeakyReLU(LEAKY_SLOPE)
+        if stride != 1 or in_channels != out_channels:
+            self.shortcut = nn.Conv2d(in_channels, out_channels, 1, stride=stride, bias=False)
+        else:
+            self.shortcut = nn.Identity()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(self.conv2(self.act(self.conv1(x))) + self.shortcut(x))
+
+
+def scaled_channels(channels: int, width: float) -> int:
+    """``round(channels · width)``, at least 1: the channel count of a reference layer at ``width``."""
+    return max(1, int(round(channels * width)))
+
+
+def encode_heights(heights: torch.Tensor, max_height: float, num_classes: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Heights (metres) -> the agent networks' input ``class / (K − 1)`` in [0, 1], same shape.
+
+    ``class = geometry.heights_to_classes(heights, max_height, K)``: raw env heights and heights decoded
+    from uint8 replay storage give bit-identical inputs.
+    """
+    classes = _geometry.heights_to_classes(heights, max_height, num_classes)
+    return classes.to(dtype).div_(num_classes - 1)
+
+
+def check_height_images(value, name: str, size: int, batch_shape: torch.Size | None = None) -> torch.Size:
+    """Validate a ``[*B, 1, size, size]`` finite floating-point image in metres; return ``*B``.
+
+    With ``batch_shape`` the leading dims must equal it. One-line ValueError naming ``name`` otherwise.
+    """
+    expected = f"[*B, 1, {size}, {size}] floating-point metres"
+    if not torch.is_tensor(value):
+        raise ValueError(f"{name} must be a {expected} tensor, got {type(value).__name__}")
+    if value.dim() < 4 or tuple(value.shape[-3:]) != (1, size, size):
+        raise ValueError(f"{name} must be {expected}, got shape {tuple(value.shape)}")
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be {expected}, got dtype {value.dtype}")
+    if batch_shape is not None and value.shape[:-3] != batch_shape:
+        raise ValueError(f"{name} must have batch shape {tuple(batch_shape)}, got shape {tuple(value.shape)}")
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} must be finite (no NaN or inf)")
+    return value.shape[:-3]
+
+
+__all__ += ["BasicBlock", "scaled_channels", "encode_heights", "check_height_images"]  # noqa: PLE0605

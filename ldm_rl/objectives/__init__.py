@@ -1,6 +1,7 @@
-"""Training objectives: the LDM focal loss."""
+"""Training objectives: the LDM focal loss and the agent's lookahead Q/V losses."""
 
 from ldm_rl.objectives.focal import depth_class_weights, focal_loss
 from ldm_rl.objectives.ldm_loss import LDMLoss
+from ldm_rl.objectives.value_lookahead import LookaheadLoss
 
-__all__ = ["LDMLoss", "focal_loss", "depth_class_weights"]
+__all__ = ["LDMLoss", "LookaheadLoss", "focal_loss", "depth_class_weights"]

@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
-from ldm_rl.keys import ACTION, HEIGHTMAP, HOLDING, IN_HAND, next_key, require_keys
+from ldm_rl.keys import ACTION, HEIGHTMAP, HOLDING, IN_HAND, NEXT_LOGITS, next_key, require_keys
 from ldm_rl.objectives.focal import depth_class_weights, focal_loss
 from ldm_rl.world_model.core import DynamicsModel, validate_state_action
 
@@ -31,6 +31,8 @@ class LDMLoss(LossModule):
             seen in training mode (buffer ``class_counts``; fixed in eval mode). ``conf/loss/focal.yaml``
             (the recipes) sets ``"auto"``.
         label_smoothing: ε of the smoothed target distribution, default 0.
+        write_logits: also write the detached frame logits ``[*B, K, S, S]`` into the input under
+            ``next_logits`` (the agent derives the predicted next state from them: no second LDM pass).
 
     Returns a TensorDict with ``loss_dynamics`` (scalar) and diagnostics ``pixel_accuracy`` (argmax ==
     target over the frame) and ``changed_pixel_accuracy`` (the same over pixels whose class changes).
@@ -45,16 +47,19 @@ class LDMLoss(LossModule):
         holding: NestedKey = HOLDING
         action: NestedKey = ACTION
         next_heightmap: NestedKey = next_key(HEIGHTMAP)
+        next_logits: NestedKey = NEXT_LOGITS
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
 
-    def __init__(self, dynamics: DynamicsModel, *, gamma: float = 2.0, class_weights=None, label_smoothing: float = 0.0) -> None:
+    def __init__(self, dynamics: DynamicsModel, *, gamma: float = 2.0, class_weights=None, label_smoothing: float = 0.0,
+                 write_logits: bool = False) -> None:
         super().__init__()
         if gamma < 0 or not 0.0 <= label_smoothing < 1.0:
             raise ValueError(f"need gamma >= 0 and label_smoothing in [0, 1), got {gamma}, {label_smoothing}")
         self.dynamics = dynamics
         self.gamma, self.label_smoothing = float(gamma), float(label_smoothing)
+        self.write_logits = bool(write_logits)
         k = dynamics.num_classes
         self.auto_weights = isinstance(class_weights, str)
         if self.auto_weights and class_weights != "auto":
@@ -93,6 +98,8 @@ class LDMLoss(LossModule):
         if not batch:
             raise ValueError("LDMLoss needs a batched tensordict (non-empty batch_size)")
         logits = self.dynamics(heightmap, tensordict.get(k.in_hand), holding, action)
+        if self.write_logits:
+            tensordict.set(k.next_logits, logits.detach())
         logits = logits.reshape(-1, *logits.shape[-3:])  # [N, K, S, S]
         flat_action = action.reshape(-1, 3).long()
         target = self.dynamics.frame_classes(next_heightmap.reshape(-1, *next_heightmap.shape[-3:]), flat_action)[:, 0]

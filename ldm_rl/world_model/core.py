@@ -192,6 +192,22 @@ class DynamicsModel(nn.Module):
         batch, holding = validate_state_action(heightmap, in_hand, holding, action, self.num_rotations)
         heightmap, in_hand, holding, action = self._flatten(batch, heightmap, in_hand, holding, action)
         logits, frame_before = self._flat_logits(heightmap, in_hand, holding, action)
+        return self._next_state(batch, heightmap, action, logits, frame_before)
+
+    def next_state_from_logits(self, heightmap, in_hand, holding, action, logits) -> DynamicsPrediction:
+        """The next state implied by frame ``logits`` ``[*B, K, S, S]`` already computed for this batch
+        (e.g. by the training loss' forward pass): no second network pass. Gradients are not tracked."""
+        batch, _ = validate_state_action(heightmap, in_hand, holding, action, self.num_rotations)
+        if not torch.is_tensor(logits) or tuple(logits.shape) != (*batch, self.num_classes, self.frame_size, self.frame_size):
+            raise _shape_error("logits", f"[*B, {self.num_classes}, {self.frame_size}, {self.frame_size}]", logits)
+        heightmap, _, _, action = self._flatten(batch, heightmap, in_hand, holding, action)
+        with torch.no_grad():
+            return self._next_state(batch, heightmap, action, logits.detach().reshape(-1, *logits.shape[len(batch):]))
+
+    def _next_state(self, batch, heightmap, action, logits, frame_before=None) -> DynamicsPrediction:
+        """Flat [N] heightmap/action and [N, K, S, S] logits -> the prediction reshaped to ``batch``."""
+        if frame_before is None:
+            frame_before = self.frame_classes(heightmap, action)
         frame_after = logits.argmax(1, keepdim=True).to(torch.uint8)
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
         size = self.hand_rule.center_size

@@ -7,7 +7,7 @@ from typing import Any, Mapping
 from ldm_rl.models.blocks import count_parameters
 from ldm_rl.world_model.core import DynamicsModel, HandStateRule
 
-__all__ = ["PRESET_WIDTHS", "build_dynamics_model", "count_parameters"]
+__all__ = ["PRESET_WIDTHS", "build_dynamics_model", "count_parameters", "load_dynamics_checkpoint"]
 
 # channel multiplier of each preset; ``lite`` reads ``cfg.width`` (default below)
 PRESET_WIDTHS = {"paper": 1.0, "lite": 0.25}
@@ -46,3 +46,28 @@ def build_dynamics_model(cfg: Mapping[str, Any], max_height: float):
     )
 
 
+def load_dynamics_checkpoint(path, expect: Mapping[str, Any] | None = None, *, map_location="cpu"):
+    """Rebuild the dynamics model saved by ``recipes/train_dynamics.py``; returns ``(model, checkpoint)``.
+
+    ``path``: a ``checkpoint.pt`` or the run folder holding it. The file is verified by
+    :func:`ldm_rl.checkpoint.load_checkpoint` (checksum, format version, ``kind == "dynamics"`` and every
+    ``expect`` key, e.g. ``{"preset": "lite", "task": "ldm_rl/BlockStacking-v0"}``); the model is built
+    from the config stored in it (``config.model``, ``config.env.max_height``), given its weights, moved
+    to ``map_location`` and returned in eval mode. Every problem is one ``CheckpointError``.
+    """
+    from ldm_rl.checkpoint import CheckpointError, load_checkpoint
+
+    checkpoint = load_checkpoint(path, expect={"kind": "dynamics", **dict(expect or {})}, map_location=map_location)
+    cfg = checkpoint.meta.get("config") or {}
+    try:
+        model_cfg, max_height = cfg["model"], float(cfg["env"]["max_height"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(f"checkpoint {checkpoint.path}: its meta has no config.model / config.env.max_height to "
+                              "rebuild the model from") from err
+    model = build_dynamics_model(model_cfg, max_height)
+    try:
+        model.load_state_dict(checkpoint.state["model"])
+    except (KeyError, RuntimeError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"checkpoint {checkpoint.path}: its weights do not fit the model its config describes ({first})") from err
+    return model.to(map_location).eval(), checkpoint

@@ -3,7 +3,8 @@
 Pieces: :func:`split_transitions` (held-out split by episode), :func:`evaluate` (L1 / SR of
 ``ldm_rl.metrics`` over a dataset), :func:`prediction_grid` (PNG of predictions vs truth),
 :func:`plot_success_rate`, and :func:`train_dynamics` (the loop: Adam, step decay, periodic eval,
-TorchRL logger + ``metrics.csv``, atomic checkpoint).
+TorchRL logger + ``metrics.csv``, periodic checkpoints in the ``ldm_rl.checkpoint`` format, exact
+resume, a clean stop on SIGINT/SIGTERM).
 """
 
 from __future__ import annotations
@@ -18,11 +19,13 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
+from ldm_rl.checkpoint import Checkpoint, RunStopped, StopSignals, capture_rng_state, restore_rng_state, save_checkpoint
 from ldm_rl.metrics import MetricSettings, summarize, transition_metrics
-from ldm_rl.runtime import atomic_path, atomic_torch_save, atomic_write_text
+from ldm_rl.runtime import atomic_path, atomic_write_text
 from ldm_rl.world_model.core import DynamicsModel
 
-__all__ = ["PrimitiveBalancedSampler", "REQUIRED_KEYS", "split_transitions", "evaluate", "prediction_grid", "plot_success_rate", "train_dynamics", "model_label"]
+__all__ = ["PrimitiveBalancedSampler", "REQUIRED_KEYS", "split_transitions", "evaluate", "prediction_grid", "plot_success_rate",
+           "train_dynamics", "model_label", "data_fingerprint"]
 
 REQUIRED_KEYS = ("heightmap", "in_hand", "holding", "action", ("next", "heightmap"), ("next", "holding"))
 CSV_FIELDS = ("iteration", "loss", "lr", "l1_mm", "l1_region_mm", "sr", "sr_pick", "sr_place", "elapsed_s")
@@ -53,6 +56,21 @@ class PrimitiveBalancedSampler:
             return self._draw(self.picks if len(self.picks) else self.places, self.batch_size)
         n_pick = self.batch_size // 2
         return torch.cat((self._draw(self.picks, n_pick), self._draw(self.places, self.batch_size - n_pick)))
+
+
+def data_fingerprint(data: TensorDictBase) -> str:
+    """SHA-256 of every tensor of ``data`` (keys, dtypes, shapes, bytes): a resumed run checks that it
+    trains on the same transitions as the run it continues."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    leaves = sorted(((k if isinstance(k, tuple) else (k,)), v) for k, v in data.items(include_nested=True, leaves_only=True)
+                    if isinstance(v, torch.Tensor))
+    for key, value in leaves:
+        value = value.detach().cpu().contiguous()
+        digest.update(f"{'/'.join(key)}|{value.dtype}|{tuple(value.shape)}|".encode())
+        digest.update(value.view(torch.uint8).numpy().tobytes() if value.numel() else b"")
+    return digest.hexdigest()
 
 
 def split_transitions(data: TensorDictBase, val_fraction: float, seed: int) -> tuple[TensorDictBase, TensorDictBase]:
@@ -173,6 +191,14 @@ def _write_csv(rows: list[dict], path: Path) -> None:
     atomic_write_text(path, text.getvalue())
 
 
+def _prefix_of(module: torch.nn.Module, parent: torch.nn.Module) -> str | None:
+    """The state_dict prefix of ``module`` inside ``parent`` ("" if it is ``parent``), None if absent."""
+    for name, child in parent.named_modules():
+        if child is module:
+            return f"{name}." if name else ""
+    return None
+
+
 def train_dynamics(
     model: DynamicsModel,
     loss_module,
@@ -193,31 +219,83 @@ def train_dynamics(
     logger=None,
     seed: int = 0,
     autocast: str | None = None,
-    extra_checkpoint: Mapping[str, Any] | None = None,
+    checkpoint_every: int = 0,
+    checkpoint_meta: Mapping[str, Any] | None = None,
+    resume: Checkpoint | Mapping[str, Any] | None = None,
+    stop: StopSignals | None = None,
 ) -> dict[str, Any]:
     """Train ``loss_module`` (an ``LDMLoss`` around ``model``) and write the run's artefacts to ``out_dir``.
 
     Minibatches are drawn with replacement by :class:`PrimitiveBalancedSampler` (half picks, half places).
 
-    Artefacts: ``metrics.csv`` (one row per evaluation), ``checkpoint.pt`` (model state + settings),
-    ``sr_vs_iteration.png`` (if matplotlib), ``predictions.png``. Returns the
-    final metrics. ``autocast="bf16"`` runs the loss forward under bf16 autocast (≈1.5× faster for the
-    paper preset on an AVX-512-bf16 CPU, see benchmarks/bench_ldm.py).
+    Artefacts: ``metrics.csv`` (one row per evaluation), ``checkpoint.pt`` (see below),
+    ``sr_vs_iteration.png`` (if matplotlib), ``predictions.png``. Returns the final metrics.
+    ``autocast="bf16"`` runs the loss forward under bf16 autocast (≈1.5× faster for the paper preset on
+    an AVX-512-bf16 CPU, see benchmarks/bench_ldm.py).
+
+    Checkpoints (``ldm_rl.checkpoint`` format, ``out_dir/checkpoint.pt``) are written every
+    ``checkpoint_every`` iterations (0: never in between), at the end, and when ``stop`` (a
+    :class:`~ldm_rl.checkpoint.StopSignals`) has caught a signal — then :class:`RunStopped` is raised.
+    Their state holds the model, the loss' own buffers (class counts), the optimizer, the LR schedule,
+    every RNG including the sampler's, the iteration, the metrics rows so far and the losses since the
+    last evaluation; their meta is ``checkpoint_meta`` (``kind``, ``preset``, ``task``, ``config``...)
+    plus ``iteration`` / ``iterations`` / ``complete``. ``resume`` (such a checkpoint) continues from
+    it: with the same data, seed, threads and device, the final weights and metrics equal an
+    uninterrupted run's bit for bit (the ``elapsed_s`` column is wall-clock time and does not).
     """
     if autocast not in (None, "bf16"):
         raise ValueError(f"autocast must be null or 'bf16', got {autocast!r}")
     if iterations < 1 or batch_size < 1 or eval_every < 1:
         raise ValueError(f"iterations, batch_size and eval_every must be >= 1, got {iterations}, {batch_size}, {eval_every}")
+    if checkpoint_every < 0:
+        raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint_path = out_dir / "checkpoint.pt"
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=lr_decay_every, gamma=lr_decay)
     sampler = PrimitiveBalancedSampler(train["holding"], batch_size, seed)
+    prefix = _prefix_of(model, loss_module)
     rows: list[dict] = []
+    running: list[float] = []
+    done, elapsed_before = 0, 0.0
+
+    def own_loss_state() -> dict:
+        """The loss' own buffers (class counts), without the model's parameters."""
+        state = loss_module.state_dict()
+        return state if prefix is None else {k: v for k, v in state.items() if not k.startswith(prefix)}
+
+    if resume is not None:
+        state = resume.state if isinstance(resume, Checkpoint) else resume
+        done = int(state["iteration"])
+        if not 0 <= done <= iterations:
+            raise ValueError(f"resume: the checkpoint is at iteration {done}, outside [0, iterations={iterations}]")
+        model.load_state_dict(state["model"])
+        if prefix:
+            loss_module.load_state_dict({**{prefix + k: v for k, v in model.state_dict().items()}, **state["loss"]})
+        elif prefix is None:
+            loss_module.load_state_dict(state["loss"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        rows, running = [dict(r) for r in state["rows"]], [float(x) for x in state["running"]]
+        elapsed_before = float(state["elapsed_s"])
+        restore_rng_state(state["rng"], {"sampler": sampler.generator})
+
     start = time.perf_counter()
+
+    def save(iteration: int) -> Path:
+        state = {
+            "model": model.state_dict(), "loss": own_loss_state(), "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(), "rng": capture_rng_state({"sampler": sampler.generator}),
+            "iteration": iteration, "rows": rows, "running": running,
+            "elapsed_s": elapsed_before + time.perf_counter() - start,
+        }
+        meta = {"kind": "dynamics", **dict(checkpoint_meta or {}), "iteration": iteration, "iterations": iterations,
+                "complete": iteration == iterations, "metrics": rows[-1] if rows else None}
+        return save_checkpoint(checkpoint_path, state, meta=meta)
+
     loss_module.train()
-    running = []
-    for iteration in range(1, iterations + 1):
+    for iteration in range(done + 1, iterations + 1):
         batch = train[sampler.sample()]
         with torch.autocast(batch.device.type if batch.device else "cpu", dtype=torch.bfloat16, enabled=autocast == "bf16"):
             loss = loss_module(batch)["loss_dynamics"]
@@ -229,7 +307,7 @@ def train_dynamics(
         if iteration % eval_every == 0 or iteration == iterations:
             metrics = evaluate(model, val, settings, eval_batch_size)
             row = {"iteration": iteration, "loss": float(np.mean(running)), "lr": scheduler.get_last_lr()[0],
-                   **metrics, "elapsed_s": time.perf_counter() - start}
+                   **metrics, "elapsed_s": elapsed_before + time.perf_counter() - start}
             running = []
             rows.append(row)
             _write_csv(rows, out_dir / "metrics.csv")
@@ -242,12 +320,17 @@ def train_dynamics(
                 f"(pick {100 * row['sr_pick']:.1f}%, place {100 * row['sr_place']:.1f}%)  {row['elapsed_s']:.0f}s",
                 flush=True,
             )
+        saved = False
+        if iteration == iterations or (checkpoint_every and iteration % checkpoint_every == 0):
+            save(iteration)
+            saved = True
+        if stop is not None and stop.requested and iteration < iterations:
+            if not saved:
+                save(iteration)
+            raise RunStopped(stop.signal_name or "SIGTERM", iteration, iterations, checkpoint_path)
+    if done == iterations:  # resumed a finished run: artefacts again, checkpoint as it was
+        _write_csv(rows, out_dir / "metrics.csv")
     final = rows[-1]
-    atomic_torch_save(
-        {"model_state": model.state_dict(), "loss_state": loss_module.state_dict(), "iteration": iterations,
-         "metrics": final, **(extra_checkpoint or {})},
-        out_dir / "checkpoint.pt",
-    )
     plot_success_rate(rows, out_dir / "sr_vs_iteration.png")
     prediction_grid(model, val, out_dir / "predictions.png", grid_samples)
     return final

@@ -1,0 +1,90 @@
+"""Agents: the one place where the policy, its losses and its optimizers are put together.
+
+``AGENTS`` maps ``cfg.agent.name`` to a builder ``(cfg, max_height) -> Agent``; the baselines plug in
+here (``agent=fcdqn|rs|dynaq``) and ``recipes/train_policy.py`` runs any of them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Mapping
+
+__all__ = ["AGENTS", "build_agent", "build_ldm_agent", "load_agent"]
+
+
+def _plain(node) -> dict:
+    """A Hydra/OmegaConf node (or dict) -> a plain dict with every ``_target_`` node instantiated."""
+    from hydra.utils import instantiate
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(node, DictConfig):
+        node = OmegaConf.to_container(node, resolve=True)
+    return {key: instantiate(value) if isinstance(value, Mapping) and "_target_" in value else value
+            for key, value in dict(node or {}).items()}
+
+
+def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
+    """The paper's agent from ``cfg.model`` (the LDM), ``cfg.loss`` (its focal loss), ``cfg.agent``
+    (Q/V presets, targets, optimisation) and ``cfg.planner`` (proposals and schedules)."""
+    import torch
+
+    from ldm_rl.agents.ldm import LDMAgent
+    from ldm_rl.models.q_fcn import build_q_network
+    from ldm_rl.models.v_cnn import build_value_network
+    from ldm_rl.objectives import LDMLoss, LookaheadLoss
+    from ldm_rl.planning.planner import LookaheadPlanner
+    from ldm_rl.world_model import build_dynamics_model
+
+    agent_cfg = _plain(cfg["agent"])
+    dynamics = build_dynamics_model(cfg["model"], max_height)
+    preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
+    common = {"max_height": float(max_height), "num_classes": dynamics.num_classes}
+    q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"), **common)
+    value_network = build_value_network(preset, width=agent_cfg.get("value_width"), **common)
+    planner = LookaheadPlanner(q_network, dynamics, value_network, **_plain(cfg["planner"]))
+    loss = LookaheadLoss(
+        q_network, value_network, dynamics,
+        gamma=float(agent_cfg["gamma"]),
+        num_target_candidates=int(agent_cfg["num_target_candidates"]),
+        target_proposal=dict(agent_cfg.get("target_proposal") or {}),
+        value_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),
+        chunk_size=int(agent_cfg.get("chunk_size", 64)),
+    )
+    loss_cfg = _plain(cfg["loss"])
+    class_weights = loss_cfg.get("class_weights")
+    if class_weights is not None and not isinstance(class_weights, str):
+        class_weights = torch.tensor(list(class_weights), dtype=torch.float32)
+    dynamics_loss = LDMLoss(dynamics, gamma=float(loss_cfg.get("gamma", 2.0)), class_weights=class_weights,
+                            label_smoothing=float(loss_cfg.get("label_smoothing", 0.0)), write_logits=True)
+    return LDMAgent(
+        planner, loss, dynamics_loss,
+        lr=dict(agent_cfg["lr"]), weight_decay=dict(agent_cfg.get("weight_decay") or {}),
+        lr_decay=float(agent_cfg["lr_decay"]), lr_decay_every=int(agent_cfg["lr_decay_every"]),
+        target_update_interval=int(agent_cfg["target_update_interval"]),
+        q_grad_clip=agent_cfg.get("q_grad_clip"),
+    )
+
+
+AGENTS: dict[str, Callable] = {"ldm": build_ldm_agent}
+
+
+def build_agent(cfg: Mapping[str, Any], max_height: float):
+    """The agent named by ``cfg.agent.name`` (one of :data:`AGENTS`)."""
+    name = cfg["agent"].get("name")
+    if name not in AGENTS:
+        raise ValueError(f"agent.name must be one of {sorted(AGENTS)}, got {name!r}")
+    return AGENTS[name](cfg, max_height)
+
+
+def load_agent(path, *, preset: str | None = None, device="cpu"):
+    """Rebuild the agent saved by ``recipes/train_policy.py`` at ``path``; returns ``(agent, config)``.
+
+    ``preset``: when given, the checkpoint must hold that preset (one clear error otherwise).
+    """
+    from ldm_rl.checkpoint import load_checkpoint
+
+    expect = {"kind": "agent", **({"preset": preset} if preset is not None else {})}
+    checkpoint = load_checkpoint(path, expect=expect, map_location=device)
+    cfg = checkpoint.meta["config"]
+    agent = build_agent(cfg, float(cfg["env"]["max_height"])).to(device)
+    agent.load_state_dict(checkpoint.state["agent"])
+    return agent.eval(), cfg

@@ -1,0 +1,61 @@
+"""What every agent offers the training loop (``recipes/train_policy.py``) and the evaluator.
+
+An agent owns its networks, losses, optimizers, LR schedules and target updater; the recipe owns the
+loop (collect → replay → ``agent.update(batch)`` → evaluate → checkpoint) in plain view.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+__all__ = ["Agent"]
+
+
+class Agent(nn.Module):
+    """Base class: ``policy`` (a TensorDict module for collectors and ``env.rollout``), ``update``,
+    ``training_state`` / ``load_training_state`` (optimizers, schedules, counters) beside ``state_dict``.
+    """
+
+    name = "agent"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.updates = 0
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.lr_schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler] = {}
+
+    @property
+    def policy(self) -> TensorDictModuleBase:
+        raise NotImplementedError
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """One gradient step on a flat batch of transitions; writes ``td_error`` [B] into ``batch``
+        (the new replay priorities) and returns scalar diagnostics."""
+        raise NotImplementedError
+
+    def pretrain_update(self, batch: TensorDictBase) -> dict[str, float]:
+        """An update before any acting (default: a full update)."""
+        return self.update(batch)
+
+    def learning_rates(self) -> dict[str, float]:
+        return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}
+
+    def training_state(self) -> dict[str, Any]:
+        """Everything beside the weights that an exact resume needs."""
+        return {
+            "updates": self.updates,
+            "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+            "lr_schedulers": {name: sched.state_dict() for name, sched in self.lr_schedulers.items()},
+        }
+
+    def load_training_state(self, state: dict[str, Any]) -> None:
+        self.updates = int(state["updates"])
+        for name, opt in self.optimizers.items():
+            opt.load_state_dict(state["optimizers"][name])
+        for name, sched in self.lr_schedulers.items():
+            sched.load_state_dict(state["lr_schedulers"][name])

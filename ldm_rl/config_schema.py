@@ -1,0 +1,769 @@
+"""Typed configuration: the schema of ``conf/config.yaml`` and the recipes' command-line pre-flight.
+
+The pattern (docs/reliability.md has the long form):
+
+1. **One dataclass per config group** (``EnvConfig``, ``ModelConfig``, ...). Each field has the type and,
+   through :func:`spec`, the allowed range or choices and a short doc; an optional ``check(node)``
+   static method holds cross-field rules. Values live in the YAML files, so most fields default to
+   ``MISSING``.
+2. **One dataclass per primary config** (``Config`` for ``conf/config.yaml``) with a field per group,
+   stored by :func:`register_configs` in Hydra's ConfigStore as ``schema/<name>`` (package
+   ``_global_``); the primary YAML lists ``- optional schema: <name>`` first in its defaults. A recipe
+   imports this module (registration runs at import), so Hydra rejects a wrong type or an unknown
+   key while composing, even for ``--cfg job``.
+3. :func:`validate_config` checks ranges, choices and cross-field rules (and types again, for code
+   that composed without the schema); every problem is reported on one line.
+4. A recipe's ``if __name__ == "__main__":`` calls :func:`check_command_line` before ``main()``: it
+   composes the command line as Hydra will, validates it, handles ``resume=true`` (the run's own
+   overrides are replayed), and on any problem prints ``error: ...`` (one line) and exits with code 2
+   before Hydra creates an output folder and before torch is imported.
+
+Importing this module is light: hydra and omegaconf only.
+"""
+
+import dataclasses
+import re
+import sys
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Optional
+
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+__all__ = [
+    "ConfigError",
+    "Rule",
+    "spec",
+    "EnvConfig",
+    "HandRuleConfig",
+    "ModelConfig",
+    "LossConfig",
+    "LoggerConfig",
+    "NoiseConfig",
+    "StripConfig",
+    "DemosConfig",
+    "MetricsConfig",
+    "DynamicsConfig",
+    "Config",
+    "SCHEMAS",
+    "register_schema",
+    "register_configs",
+    "validate_config",
+    "config_differences",
+    "check_command_line",
+]
+
+
+class ConfigError(ValueError):
+    """A composed config that is typed right but not usable (out of range, contradictory)."""
+
+
+# ------------------------------------------------------------------------------------------ rules
+
+
+@dataclass(frozen=True)
+class Rule:
+    """Allowed values of one field: bounds, choices, a multiple, a regular expression; ``doc`` says what it is."""
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+    choices: tuple | None = None
+    multiple_of: int | None = None
+    pattern: str | None = None
+    doc: str = ""
+    allowed: str | None = None  # the allowed values in words, when the rule alone would not say it well
+    exists: bool = False  # a path (relative to the working directory) that must exist; null passes
+
+    def describe(self) -> str:
+        """The allowed values in words, e.g. ``in [0, 1)``, ``> 0``, ``one of 'csv', 'none'``."""
+        if self.allowed is not None:
+            return self.allowed
+        if self.exists:
+            return "null or an existing path"
+        if self.choices is not None:
+            return "one of " + ", ".join(repr(c) if c is not None else "null" for c in self.choices)
+        if self.pattern is not None:
+            return f"matching {self.pattern}"
+        low = (f"[{_num(self.ge)}" if self.ge is not None else f"({_num(self.gt)}" if self.gt is not None else None)
+        high = (f"{_num(self.le)}]" if self.le is not None else f"{_num(self.lt)})" if self.lt is not None else None)
+        if low and high:
+            text = f"in {low}, {high}"
+        elif low:
+            text = f">= {_num(self.ge)}" if self.ge is not None else f"> {_num(self.gt)}"
+        elif high:
+            text = f"<= {_num(self.le)}" if self.le is not None else f"< {_num(self.lt)}"
+        else:
+            text = "any value"
+        if self.multiple_of:
+            text += f" and a multiple of {self.multiple_of}"
+        return text
+
+    def violated(self, value: Any) -> bool:
+        if value is None:  # Optional fields: null is allowed where the type says so
+            return False
+        if self.exists:
+            return not Path(str(value)).expanduser().exists()
+        if self.choices is not None:
+            return value not in self.choices
+        if self.pattern is not None:
+            return not (isinstance(value, str) and re.fullmatch(self.pattern, value))
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return False
+        if value != value:  # NaN
+            return True
+        return bool(
+            (self.ge is not None and value < self.ge)
+            or (self.gt is not None and value <= self.gt)
+            or (self.le is not None and value > self.le)
+            or (self.lt is not None and value >= self.lt)
+            or (self.multiple_of and value % self.multiple_of)
+        )
+
+
+def _num(x: float) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def spec(default: Any = MISSING, **rule: Any) -> Any:
+    """A dataclass field with a :class:`Rule` (``ge``, ``gt``, ``le``, ``lt``, ``choices``,
+    ``multiple_of``, ``pattern``, ``doc``) in its metadata; ``default`` as for ``dataclasses.field``."""
+    return field(default=default, metadata={"rule": Rule(**rule)})
+
+
+def group(cls: type) -> Any:
+    """A field holding a nested group dataclass."""
+    return field(default_factory=cls)
+
+
+# ------------------------------------------------------------------------------------ the schema
+
+
+@dataclass
+class EnvConfig:
+    """``conf/env/*.yaml``: the task (``ldm_rl.envs``)."""
+
+    id: str = spec(doc="gymnasium id, e.g. ldm_rl/BlockStacking-v0")
+    num_objects: int = spec(ge=1, doc="objects in the scene")
+    max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode; null = 2*num_objects + 4")
+    num_rotations: int = spec(8, ge=2, multiple_of=2, doc="rotation bins k*pi/R")
+    max_height: float = spec(gt=0, le=1, doc="metres of the top depth class")
+    demo_procedure: str = spec("direct", choices=("direct", "deconstruct"), doc="expert demo procedure")
+
+
+@dataclass
+class HandRuleConfig:
+    center_size: int = spec(32, ge=1, le=128, doc="side of the central window of the hand-state rule")
+    before_threshold: int = spec(25, ge=0, doc="occupied pixels needed before the action")
+    after_threshold: int = spec(25, ge=0, doc="occupied pixels allowed after the action")
+
+
+@dataclass
+class ModelConfig:
+    """``conf/model/*.yaml``: the dynamics model (``ldm_rl.world_model.build_dynamics_model``)."""
+
+    name: str = spec(choices=("ldm", "naive"), doc="LDM or the Naive baseline")
+    preset: str = spec(choices=("paper", "lite"), doc="network size")
+    width: float = spec(gt=0, le=4, doc="channel multiplier of the lite preset")
+    crop_size: int = spec(ge=32, le=128, multiple_of=16, doc="side of B_a in pixels")
+    num_depth_classes: int = spec(ge=2, le=256, doc="depth classes K")
+    num_rotations: int = spec(ge=2, multiple_of=2, doc="rotation bins; must equal env.num_rotations")
+    hand_rule: HandRuleConfig = group(HandRuleConfig)
+    hand_crop_mode: str = spec("bilinear", choices=("bilinear", "nearest"), doc="crop mode of the predicted in-hand image")
+    action_sigma: float = spec(2.0, gt=0, doc="Naive only: std (px) of the action blob")
+
+
+@dataclass
+class LossConfig:
+    """``conf/loss/*.yaml``: ``ldm_rl.objectives.LDMLoss``."""
+
+    gamma: float = spec(ge=0, doc="focal exponent")
+    class_weights: Any = MISSING  # null | "auto" | list of K floats (checked below)
+    label_smoothing: float = spec(0.0, ge=0, lt=1, doc="label smoothing epsilon")
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        value = node.class_weights
+        if value is None or value == "auto":
+            return []
+        if OmegaConf.is_list(value) and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 for v in value):
+            return []
+        return [f"{prefix}class_weights={_show(value)}: must be null, 'auto' or a list of K non-negative numbers"]
+
+
+@dataclass
+class LoggerConfig:
+    """``conf/logger/*.yaml``: ``ldm_rl.runtime.make_logger``."""
+
+    backend: str = spec(choices=("csv", "tensorboard", "none"), doc="TorchRL logger")
+    exp_name: str = MISSING
+
+
+@dataclass
+class NoiseConfig:
+    position: float = spec(0.0, ge=0, le=0.1, doc="expert position jitter, metres")
+    random_action_prob: float = spec(0.0, ge=0, le=1, doc="probability of a random action")
+
+
+@dataclass
+class StripConfig:
+    out: Optional[str] = None
+    scale: int = spec(2, ge=1, le=16, doc="PNG pixels per heightmap pixel")
+
+
+@dataclass
+class DemosConfig:
+    """``conf/demos/*.yaml``: ``recipes/generate_demos.py`` (and the noise of in-process demos)."""
+
+    num_steps: Optional[int] = spec(ge=1, doc="transitions to collect")
+    num_episodes: Optional[int] = spec(ge=1, doc="episodes to collect")
+    procedure: str = spec(choices=("direct", "deconstruct"), doc="expert demo procedure")
+    noise: NoiseConfig = group(NoiseConfig)
+    out: Optional[str] = None
+    progress: bool = True
+    strip: StripConfig = group(StripConfig)
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        steps, episodes = node.num_steps, node.num_episodes
+        if steps is not None and episodes is not None:
+            return [f"{prefix}num_steps={steps} and {prefix}num_episodes={episodes} are both set: give exactly one "
+                    f"(e.g. {prefix}num_steps=null {prefix}num_episodes={episodes})"]
+        if steps is None and episodes is None:
+            return [f"{prefix}num_steps and {prefix}num_episodes are both null: give exactly one"]
+        return []
+
+
+@dataclass
+class MetricsConfig:
+    region_size: int = spec(64, ge=1, le=128, doc="side of B_a for L1 in the region")
+    iou_threshold: float = spec(0.75, gt=0, le=1, doc="IoU a place needs to count as correct")
+    height_tolerance: float = spec(1.0, ge=0, doc="mean class error a place may have")
+
+
+@dataclass
+class DynamicsConfig:
+    """``conf/dynamics/*.yaml``: ``recipes/train_dynamics.py``."""
+
+    data: Optional[str] = spec(None, exists=True, doc="a demo folder written by recipes/generate_demos.py")
+    num_demo_steps: int = spec(ge=2, doc="in-process demo transitions when data is null")
+    val_fraction: float = spec(gt=0, lt=1, doc="held-out fraction")
+    iterations: int = spec(ge=1, doc="training iterations")
+    batch_size: int = spec(ge=1, doc="transitions per step")
+    lr: float = spec(gt=0, le=1, doc="Adam learning rate")
+    lr_decay: float = spec(gt=0, le=1, doc="LR factor per decay step")
+    lr_decay_every: int = spec(ge=1, doc="iterations per LR decay step")
+    weight_decay: float = spec(0.0, ge=0, doc="Adam weight decay")
+    autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="autocast of the loss forward")
+    eval_every: int = spec(ge=1, doc="iterations between evaluations")
+    eval_batch_size: int = spec(64, ge=1, doc="evaluation batch")
+    grid_samples: int = spec(6, ge=1, doc="rows of predictions.png")
+    checkpoint_every: int = spec(100, ge=0, doc="iterations between checkpoints; 0 = only at the end and on a stop signal")
+    metrics: MetricsConfig = group(MetricsConfig)
+
+
+@dataclass
+class Config:
+    """``conf/config.yaml``: the groups, plus seed / device / threads / resume."""
+
+    env: EnvConfig = group(EnvConfig)
+    model: ModelConfig = group(ModelConfig)
+    loss: LossConfig = group(LossConfig)
+    logger: LoggerConfig = group(LoggerConfig)
+    demos: DemosConfig = group(DemosConfig)
+    dynamics: DynamicsConfig = group(DynamicsConfig)
+    seed: int = spec(0, ge=0, doc="seed of every RNG")
+    device: str = spec("auto", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
+                       doc="torch device")
+    threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads; null = torch's default")
+    resume: bool = False
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        found = []
+        env_r, model_r = node.env.num_rotations, node.model.num_rotations
+        if env_r != model_r:
+            found.append(f"model.num_rotations={model_r} differs from env.num_rotations={env_r}: the model's rotation bins "
+                         "must be the env's")
+        weights, k = node.loss.class_weights, node.model.num_depth_classes
+        if OmegaConf.is_list(weights) and len(weights) != k:
+            found.append(f"loss.class_weights has {len(weights)} entries: must have model.num_depth_classes={k}")
+        return found
+
+
+# ------------------------------------------------------------------ the agent (recipes/train_policy.py)
+
+
+def _schedule_problem(value: Any, key: str, *, positive: bool) -> str | None:
+    """A planner/replay value: a number (> 0 or >= 0) or a ``{_target_: ldm_rl.schedules.X, ...}`` node."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        bad = value <= 0 if positive else value < 0
+        return f"{key}={_show(value)}: must be {'> 0' if positive else '>= 0'}" if bad or value != value else None
+    if OmegaConf.is_dict(value) and str(value.get("_target_", "")).startswith("ldm_rl.schedules."):
+        return None
+    return (f"{key}={_show(value)}: must be a number or a schedule "
+            "{_target_: ldm_rl.schedules.Linear | StepDecay | StepLinear | Exponential | Constant, ...}")
+
+
+@dataclass
+class TargetProposalConfig:
+    mode: str = spec("argmax", choices=("softmax", "argmax"), doc="how the target's proposals are drawn")
+    tau: float = spec(1.0, gt=0, doc="proposal temperature, Q units")
+    beta: float = spec(1.0, ge=0, doc="inhibition height, Q units")
+    sigma: float = spec(2.0, ge=0, doc="inhibition width, pixels")
+    sigma_rot: float = spec(1.0, ge=0, doc="inhibition width, rotation bins")
+
+
+@dataclass
+class PerNetwork:
+    q: float = spec(gt=0, le=1, doc="Q FCN")
+    value: float = spec(gt=0, le=1, doc="V CNN and its reward head")
+    dynamics: float = spec(gt=0, le=1, doc="the LDM")
+
+
+@dataclass
+class PerNetworkDecay:
+    q: float = spec(0.0, ge=0, doc="Q FCN")
+    value: float = spec(0.0, ge=0, doc="V CNN")
+    dynamics: float = spec(0.0, ge=0, doc="the LDM")
+
+
+@dataclass
+class AgentConfig:
+    """``conf/agent/*.yaml``: ``ldm_rl.agents.build_agent``."""
+
+    name: str = spec(choices=("ldm",), doc="the agent (ldm_rl.agents.AGENTS)")
+    preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="Q/V size; null = model.preset")
+    q_width: Optional[float] = spec(None, gt=0, le=4, doc="Q channel multiplier override")
+    value_width: Optional[float] = spec(None, gt=0, le=4, doc="V channel multiplier override")
+    gamma: float = spec(ge=0, le=1, doc="discount of the targets")
+    num_target_candidates: int = spec(ge=1, doc="N of the V target's max")
+    target_proposal: TargetProposalConfig = group(TargetProposalConfig)
+    value_on_prediction: bool = True
+    chunk_size: int = spec(64, ge=1, doc="state-candidate pairs per LDM/V pass")
+    lr: PerNetwork = group(PerNetwork)
+    weight_decay: PerNetworkDecay = group(PerNetworkDecay)
+    lr_decay: float = spec(gt=0, le=1, doc="LR factor per decay step")
+    lr_decay_every: int = spec(ge=1, doc="updates per LR decay step")
+    target_update_interval: int = spec(ge=1, doc="updates between target-network copies")
+    q_grad_clip: Optional[float] = spec(None, gt=0, doc="element-wise Q gradient clamp")
+
+
+@dataclass
+class PlannerConfig:
+    """``conf/planner/*.yaml``: ``ldm_rl.planning.LookaheadPlanner``."""
+
+    num_candidates: int = spec(ge=1, doc="N proposals per decision")
+    proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode while exploring")
+    greedy_proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode under DETERMINISTIC")
+    tau: Any = MISSING
+    beta: Any = MISSING
+    sigma: Any = MISSING
+    sigma_rot: Any = MISSING
+    tau_value: Any = MISSING
+    chunk_size: int = spec(64, ge=1, doc="state-candidate pairs per LDM/V pass")
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        found = [_schedule_problem(node[key], prefix + key, positive=key in ("tau", "tau_value"))
+                 for key in ("tau", "beta", "sigma", "sigma_rot", "tau_value")]
+        return [problem for problem in found if problem]
+
+
+@dataclass
+class ReplayConfig:
+    """``conf/replay/*.yaml``: ``ldm_rl.data.replay.FrameReplay``."""
+
+    capacity: int = spec(ge=2, doc="frames kept")
+    batch_size: int = spec(ge=1, doc="transitions per update")
+    alpha: float = spec(ge=0, le=1, doc="priority exponent")
+    beta: Any = MISSING
+    expert_bonus: float = spec(ge=0, doc="demonstration bonus eps_d")
+    priority_eps: float = spec(gt=0, doc="priority floor")
+    scratch_dir: Optional[str] = None
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        problem = _schedule_problem(node.beta, prefix + "beta", positive=False)
+        return [problem] if problem else []
+
+
+@dataclass
+class ScheduleConfig:
+    """``conf/schedule/*.yaml``: the loop of ``recipes/train_policy.py``."""
+
+    expert_episodes: int = spec(ge=1, doc="expert episodes seeding the replay buffer")
+    expert_procedure: str = spec(choices=("direct", "deconstruct"), doc="their demo procedure")
+    expert_noise: NoiseConfig = group(NoiseConfig)
+    pretrain_updates: int = spec(0, ge=0, doc="LDM-only updates before acting")
+    total_episodes: int = spec(ge=1, doc="training episodes")
+    max_wall_clock_s: Optional[float] = spec(None, gt=0, doc="stop after this many seconds")
+    updates_per_step: int = spec(ge=1, doc="updates per environment step")
+    eval_every: int = spec(ge=1, doc="updates between evaluations")
+    eval_episodes: int = spec(ge=1, doc="episodes per evaluation")
+    final_eval_episodes: int = spec(ge=1, doc="episodes of the final evaluation")
+    checkpoint_every: int = spec(ge=1, doc="updates between checkpoints (taken at the next episode end)")
+    progress: bool = True
+
+
+@dataclass
+class TrainPolicyConfig:
+    """``conf/train_policy.yaml``: the groups, plus seed / device / threads / resume."""
+
+    env: EnvConfig = group(EnvConfig)
+    model: ModelConfig = group(ModelConfig)
+    loss: LossConfig = group(LossConfig)
+    agent: AgentConfig = group(AgentConfig)
+    planner: PlannerConfig = group(PlannerConfig)
+    replay: ReplayConfig = group(ReplayConfig)
+    schedule: ScheduleConfig = group(ScheduleConfig)
+    logger: LoggerConfig = group(LoggerConfig)
+    seed: int = spec(0, ge=0, doc="seed of every RNG")
+    device: str = spec("cpu", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
+                       doc="torch device")
+    threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads; null = torch's default")
+    resume: bool = False
+
+    check = Config.check
+
+
+@dataclass
+class EvaluateConfig:
+    """``conf/evaluate.yaml``: ``recipes/evaluate.py``."""
+
+    checkpoint: str = spec(exists=True, doc="a checkpoint.pt written by recipes/train_policy.py")
+    episodes: int = spec(ge=1, doc="greedy episodes")
+    num_objects: Optional[int] = spec(None, ge=1, doc="objects (null = the checkpoint's)")
+    max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode (null = 2*objects + 4)")
+    preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="the preset the checkpoint must hold")
+    seed: int = spec(0, ge=0, doc="seed of the evaluation scenes")
+    device: str = spec("cpu", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
+                       doc="torch device")
+    threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads")
+    progress: bool = True
+
+
+# the schema of each primary config, by its name (conf/<name>.yaml lists `- optional schema: <name>`)
+SCHEMAS: dict[str, type] = {"config": Config, "train_policy": TrainPolicyConfig, "evaluate": EvaluateConfig}
+
+
+def register_schema(name: str, node: type) -> None:
+    """Make ``node`` the schema of the primary config ``conf/<name>.yaml``: stored in Hydra's ConfigStore
+    as ``schema/<name>`` (package ``_global_``) and used by :func:`validate_config` /
+    :func:`check_command_line` for that config. Call it at import time of the module defining ``node``."""
+    from hydra.core.config_store import ConfigStore
+
+    SCHEMAS[name] = node
+    ConfigStore.instance().store(group="schema", name=name, node=node, package="_global_")
+
+
+def register_configs() -> None:
+    """Store every schema of :data:`SCHEMAS` in Hydra's ConfigStore (idempotent; runs at import)."""
+    for name, node in list(SCHEMAS.items()):
+        register_schema(name, node)
+
+
+register_configs()
+
+
+# ------------------------------------------------------------------------------------- validation
+
+
+def _show(value: Any) -> str:
+    if OmegaConf.is_config(value):
+        value = OmegaConf.to_container(value, resolve=False)
+    if value is None:
+        return "null"
+    return repr(value) if isinstance(value, str) else str(value)
+
+
+def _nested_schema(tp: Any) -> type | None:
+    args = typing.get_args(tp)
+    candidates = (tp, *args)
+    for c in candidates:
+        if dataclasses.is_dataclass(c):
+            return c
+    return None
+
+
+def _problems(node: DictConfig, schema: type, prefix: str) -> list[str]:
+    found: list[str] = []
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        key = prefix + f.name
+        if f.name not in node:
+            found.append(f"{key} is missing")
+            continue
+        if OmegaConf.is_missing(node, f.name):
+            found.append(f"{key} is missing (???): set it")
+            continue
+        sub = _nested_schema(hints[f.name])
+        try:
+            value = node[f.name] if (sub is not None or "rule" in f.metadata) else None
+        except Exception as err:  # an interpolation that does not resolve
+            found.append(f"{key}: {_first_line(err)}")
+            continue
+        if sub is not None:
+            if value is not None:
+                found += _problems(value, sub, key + ".")
+            continue
+        rule = f.metadata.get("rule")
+        if rule is not None and rule.violated(value):
+            what = f" ({rule.doc})" if rule.doc else ""
+            kind = "is invalid" if rule.choices is not None or rule.pattern is not None or rule.exists else "is out of range"
+            found.append(f"{key}={_show(value)} {kind}: must be {rule.describe()}{what}")
+    check: Callable | None = getattr(schema, "check", None)
+    if check is not None and not found:
+        found += check(node, prefix)
+    return found
+
+
+def _first_line(err: BaseException) -> str:
+    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+    return lines[0] if lines else type(err).__name__
+
+
+def validate_config(cfg: DictConfig | Mapping[str, Any], schema: type = Config) -> None:
+    """Raise :class:`ConfigError` (one line listing every problem) unless ``cfg`` fits ``schema``:
+    types and keys (merged into the structured schema, so configs composed without the schema are
+    checked too), then each field's :class:`Rule` and each group's ``check``."""
+    if not OmegaConf.is_config(cfg):
+        cfg = OmegaConf.create(dict(cfg))
+    task = OmegaConf.to_container(cfg, resolve=False)
+    task.pop("hydra", None)
+    try:
+        typed = OmegaConf.merge(OmegaConf.structured(schema), task)
+    except Exception as err:
+        raise ConfigError(_omegaconf_line(err)) from None
+    problems = _problems(typed, schema, "")
+    if problems:
+        raise ConfigError("; ".join(problems))
+
+
+def _message_lines(err: BaseException) -> tuple[list[tuple[bool, str]], str | None]:
+    """(indented?, text) lines of an error and its causes without OmegaConf's key/type trailer; the key."""
+    lines: list[tuple[bool, str]] = []
+    key = None
+    for raw in str(err).splitlines():
+        text = raw.strip()
+        if not text:
+            continue
+        if text.startswith("full_key:"):
+            key = text.split(":", 1)[1].strip() or None
+            continue
+        if text.startswith(("reference_type=", "object_type=")):
+            continue
+        if text.startswith("Config search path"):
+            break
+        lines.append((raw[:1] in ("\t", " "), text))
+    cause = err.__cause__
+    if cause is not None and str(cause) and str(cause) not in str(err):
+        more, cause_key = _message_lines(cause)
+        lines += more
+        key = key or cause_key
+    return lines, key
+
+
+def _omegaconf_line(err: BaseException) -> str:
+    """One line from an OmegaConf / Hydra error: what is wrong and the key or override it concerns."""
+    lines, key = _message_lines(err)
+    pieces: list[str] = []
+    listing = False  # "Available options in 'model':" followed by one indented option per line
+    for indented, text in lines:
+        if indented and pieces and (listing or pieces[-1].endswith(":")):
+            pieces[-1] += (", " if listing else " ") + text
+            listing = True
+        else:
+            pieces.append(text.rstrip("."))
+            listing = False
+    prefix = "Error merging override "
+    if len(pieces) > 1 and pieces[0].startswith(prefix):  # "<override>: <why>"
+        return f"{pieces[0][len(prefix):]}: " + "; ".join(pieces[1:])
+    text = "; ".join(pieces) or type(err).__name__
+    if key and key not in text:
+        text = f"{key}: {text}"
+    return text
+
+
+def config_differences(run: Mapping[str, Any], given: Mapping[str, Any], ignore: tuple[str, ...] = ("resume",), prefix: str = "") -> list[str]:
+    """``key: run has X, the command gives Y`` for each leaf where two resolved configs differ."""
+    out = []
+    for key in sorted(set(run) | set(given)):
+        if prefix + key in ignore:
+            continue
+        a, b = run.get(key, "<absent>"), given.get(key, "<absent>")
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            out += config_differences(a, b, ignore, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}: the run has {_show(a)}, the command gives {_show(b)}")
+    return out
+
+
+# ------------------------------------------------------------------------------ command line
+
+
+class _Fail(Exception):
+    pass
+
+
+def _fail(message: str) -> None:
+    raise _Fail(message)
+
+
+def _resolved_task_config(cfg: DictConfig) -> dict:
+    """The config a recipe's ``main`` sees (no ``hydra`` node), resolved as Hydra resolves it."""
+    import copy
+
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict, read_write
+
+    HydraConfig.instance().set_config(cfg)
+    task = copy.deepcopy(cfg)
+    with read_write(task), open_dict(task):
+        del task["hydra"]
+    return OmegaConf.to_container(task, resolve=True)
+
+
+def check_command_line(
+    recipe_file: str,
+    *,
+    config_path: str = "../conf",
+    config_name: str = "config",
+    argv: list[str] | None = None,
+    checkpoint_name: str | None = None,
+    schema: type | None = None,
+) -> list[str]:
+    """Compose and check a recipe's command line the way ``@hydra.main`` will, before it runs.
+
+    Call as ``sys.argv = check_command_line(__file__, checkpoint_name="checkpoint.pt")`` above
+    ``main()``. ``checkpoint_name`` (resumable recipes) enables ``resume=true``:
+
+    * ``resume=true hydra.run.dir=DIR`` continues the run in ``DIR``: the overrides stored in
+      ``DIR/.hydra/overrides.yaml`` are put before the command's own, so the run's config is composed
+      again; if ``DIR`` holds a checkpoint, the config must equal the checkpoint's (apart from
+      ``resume``), else one error lists the differences.
+    * without ``resume=true``, a ``hydra.run.dir`` that already holds a checkpoint is refused (it would
+      be overwritten).
+
+    Returns the argv to run (the given one, or with the replayed overrides). On a problem (composition,
+    types, ranges, contradictions, resume) prints ``error: <one line>`` on stderr and exits with code 2;
+    nothing is created. ``--help``, ``--info`` and friends pass through untouched. Multirun
+    (``-m``) validates the values shared by every job here, and each job validates its own in ``main``.
+    """
+    argv = list(sys.argv if argv is None else argv)
+    from hydra._internal.utils import get_args_parser
+
+    args = get_args_parser().parse_args(argv[1:])  # bad flags: argparse's usage + exit 2, as Hydra would
+    if args.help or args.hydra_help or args.info or args.shell_completion or args.experimental_rerun:
+        return argv
+    try:
+        return _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, schema or SCHEMAS.get(config_name, Config))
+    except _Fail as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+
+
+def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, schema) -> list[str]:
+    import os
+
+    from hydra._internal.hydra import Hydra
+    from hydra._internal.utils import create_automatic_config_search_path
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.types import RunMode
+
+    from ldm_rl.checkpoint import CheckpointError, read_checkpoint_meta
+
+    recipe_file = os.path.abspath(recipe_file)
+    stem = Path(recipe_file).stem
+    config_name = args.config_name or config_name
+    config_path = args.config_path or config_path
+    multirun, show = bool(args.multirun), args.cfg is not None
+    try:
+        parsed = OverridesParser.create().parse_overrides(args.overrides)
+    except Exception as err:
+        _fail(_omegaconf_line(err))
+    search_path = create_automatic_config_search_path(recipe_file, None, config_path)
+    if args.config_dir is not None:
+        from hydra.core.config_search_path import SearchPathQuery
+
+        config_dir = os.path.abspath(args.config_dir)
+        if not os.path.isdir(config_dir):
+            _fail(f"--config-dir {config_dir}: no such folder")
+        search_path.prepend(provider="command-line", path=f"file://{config_dir}", anchor=SearchPathQuery(provider="schema"))
+    GlobalHydra.instance().clear()
+    hydra = Hydra.create_main_hydra2(task_name=stem, config_search_path=search_path)
+
+    def compose(overrides: list[str], where: str = "") -> DictConfig:
+        try:
+            return hydra.compose_config(config_name, overrides, run_mode=RunMode.MULTIRUN if multirun else RunMode.RUN)
+        except Exception as err:
+            _fail(_omegaconf_line(err) + where)
+
+    try:
+        cfg = compose(list(args.overrides))
+        resume = cfg.get("resume") is True
+        run_dir_given = any(o.key_or_group == "hydra.run.dir" for o in parsed)
+        checkpoint = None
+        if not multirun and not show and checkpoint_name is not None:
+            run_dir = Path(str(cfg.hydra.run.dir)).absolute()
+            checkpoint = run_dir / checkpoint_name
+            if resume:
+                if not run_dir_given:
+                    _fail("resume=true continues a run in its folder: add hydra.run.dir=<the run's folder> (the stop message "
+                          "prints the full command)")
+                stored_file = run_dir / str(cfg.hydra.output_subdir or ".hydra") / "overrides.yaml"
+                if not stored_file.is_file():
+                    _fail(f"resume=true: {run_dir} is not a run folder ({stored_file.name} missing under "
+                          f"{cfg.hydra.output_subdir}/); nothing to resume")
+                stored = OmegaConf.to_container(OmegaConf.load(stored_file))
+                keep = []
+                for text in stored or []:
+                    (o,) = OverridesParser.create().parse_overrides([text])
+                    if o.key_or_group != "resume" and text not in args.overrides:
+                        keep.append(text)
+                argv = _splice(argv, list(args.overrides), keep + list(args.overrides))
+                cfg = compose(keep + list(args.overrides), f" (replaying the run's overrides from {stored_file})")
+            elif run_dir_given and checkpoint.is_file():
+                try:
+                    meta = read_checkpoint_meta(checkpoint)
+                    where = f" (iteration {meta.get('iteration')}/{meta.get('iterations')})"
+                except CheckpointError:
+                    where = ""
+                _fail(f"{run_dir} already holds a run's checkpoint{where}: continue it with resume=true, or choose a new "
+                      "hydra.run.dir")
+        elif resume and checkpoint_name is None and not show:
+            _fail(f"resume=true: {stem} has nothing to resume (it writes no checkpoint)")
+        try:
+            validate_config(cfg, schema)
+        except ConfigError as err:
+            _fail(str(err))
+        if resume and checkpoint is not None and checkpoint.is_file():
+            try:
+                meta = read_checkpoint_meta(checkpoint)
+            except CheckpointError as err:
+                _fail(str(err))
+            try:
+                given = _resolved_task_config(cfg)
+            except Exception as err:
+                _fail(_omegaconf_line(err))
+            diffs = config_differences(meta.get("config", {}), given)
+            if diffs:
+                shown = "; ".join(diffs[:6]) + ("; ..." if len(diffs) > 6 else "")
+                _fail(f"resume=true: this command's config differs from the run's in {checkpoint}: {shown} (a resumed run "
+                      "keeps its config; start a new run to change it)")
+        return argv
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _splice(argv: list[str], old: list[str], new: list[str]) -> list[str]:
+    """argv with its block of overrides ``old`` (contiguous, as argparse requires) replaced by ``new``."""
+    rest = argv[1:]
+    n = len(old)
+    for i in range(len(rest) - n + 1):
+        if rest[i : i + n] == old:
+            return [argv[0], *rest[:i], *new, *rest[i + n :]]
+    return [argv[0], *[a for a in rest if a not in old], *new]  # pragma: no cover - argparse keeps them contiguous

@@ -1,0 +1,308 @@
+"""The agent's Q network: a fully convolutional pick/place Q map over every pixel and rotation.
+
+Architecture (the reference ``QValueModel``; channel counts at ``width`` = 1, every one scaled by
+``width``; no BatchNorm, LeakyReLU 0.01, ``xavier_normal_`` on every conv weight, PyTorch defaults for
+conv biases and linear layers):
+
+* trunk on the rotated 128² scene: ``conv_1`` 3×3 1→16 (no bias) → ``layer_1..4`` basic blocks stride 2
+  16→32→64→128→128 (128 → 8 px) → ``conv_2`` 3×3 128→128 (bias) → four up blocks (bilinear ×2 up,
+  ``cat[skip, up]``, basic block) 256→128, 192→64, 96→32, 48→16 back to 16×128×128 features;
+* pick head (hand empty): 3×3 16→8 (bias) → LReLU → 1×1 8→1 (bias);
+* place head (holding): the in-hand image, zero-padded 24 → 64, goes through four 3×3 stride-2 convs
+  1→32→64→128→256 (no bias) and an MLP 4096→1028→2304 that emits a per-sample 3×3 16→16 kernel; the
+  trunk features are convolved with it (no bias) → LReLU → 3×3 16→8 → LReLU → 1×1 8→1.
+
+Parameters: 8,417,110 at ``width=1`` (the hand encoder, convs and MLP, is 6,969,892 of them), exactly the
+reference's. Differences from the reference's *execution* (not its weights): the hand kernel is computed
+once per sample, not once per rotation; only the head of each sample's primitive runs.
+
+Inputs are heights in metres, encoded as ``heights_to_classes(h) / (K − 1)`` (:func:`blocks.encode_heights`).
+
+Rotations (``geometry`` conventions). Bin k is the gripper yaw ``θ_k = k·π/R``. The trunk of bin k sees
+the scene rotated by ``+θ_k`` (``geometry.rotate``: ``out[p] = x[c + R(θ_k)(p − c)]``), so around a trunk
+pixel ``p'`` it sees what ``geometry.crop(x, a, θ_k, d)`` samples around the action pixel
+``a = c + R(θ_k)(p' − c)``: the gripper frame of action (a, k). The head's map is rotated back by ``−θ_k``,
+so ``Q[b, k, row, col]`` is the value of action (row, col, k).
+
+Both rotations sample ``nearest``, as the reference does: the rotated input stays on the depth-class
+grid at every angle (what the net sees at bin 0), and every Q value is exactly one output pixel of the
+head, so :meth:`QFCN.action_values` reads the number the map shows. Map pixels whose rotated position
+falls outside the 128² frame (the corners at non-quarter bins) read 0. Being nearest-pixel, each
+rotation is a fixed gather, tabulated once per model with ``geometry.rotate`` on an image of pixel ids
+(:func:`_rotation_tables`): one ``index_select``/``gather`` per pass, no rotation stack of the source.
+Each ``θ_k`` is tabulated as an exact quarter turn (``torch.rot90``) composed with a ``geometry.rotate``
+by the residual ``φ ∈ [0, π/2)``, the scene quarter-turned first and the map last. That makes the Q maps
+*bit-exactly* equivariant to quarter turns of the scene (rotate the scene by +90°, shift the bin by
+R/2: the map rotates by +90°); tabulating ``geometry.rotate(x, θ_k)`` directly would not (for the even
+128 px frame, ``rotate(rotate(x, π/2), φ)`` and ``rotate(x, π/2 + φ)`` differ in ≈0.5 % of the pixels).
+
+Speed (CPU; other devices run the whole batch at once, NCHW). The trunk runs in chunks of
+``CHUNK_IMAGES`` images (whole samples): the time per image grows ~2–3× from 8 to 256 images a pass.
+Without gradients the features are channels_last (1.5–2× faster). With gradients they stay NCHW: on torch 2.13 CPU (oneDNN 3.12) the backward of a
+channels_last strided 1×1 conv with fewer than 16 input channels (the lite shortcut 8→16) segfaults.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ldm_rl import geometry
+from ldm_rl.models.blocks import LEAKY_SLOPE, BasicBlock, check_height_images, encode_heights, scaled_channels
+
+__all__ = ["QFCN", "Q_PRESETS", "build_q_network"]
+
+Q_PRESETS = {"paper": 1.0, "lite": 0.5}
+
+_HAND_PAD = 64  # the in-hand image is zero-padded to 64×64 before its encoder
+
+
+class _UpBlock(nn.Module):
+    """Bilinear up-sampling to the skip's size, ``cat[skip, up]``, basic block to ``out_channels``."""
+
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__()
+        self.block = BasicBlock(in_channels, out_channels)
+
+    def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        up = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+        return self.block(torch.cat((skip, up), dim=1))
+
+
+def _map_head(channels: int, width: float) -> nn.Sequential:
+    hidden = scaled_channels(8, width)
+    return nn.Sequential(nn.Conv2d(channels, hidden, 3, padding=1), nn.LeakyReLU(LEAKY_SLOPE), nn.Conv2d(hidden, 1, 1))
+
+
+def _rotation_tables(num_rotations: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest-pixel gather tables ``[R, size²]`` (int64, flat index + 1; 0 = outside the frame).
+
+    ``scene[k][p]``: the scene pixel that the trunk of bin k sees at p, i.e. ``rotate(x, θ_k)``;
+    ``maps[k][p]``: the gripper-frame pixel of bin k that ``Q[k]`` shows at p, i.e. ``rotate(m, −θ_k)``.
+    Each ``θ_k = q·π/2 + φ`` (q ∈ {0, 1}, φ ∈ [0, π/2), exact rational split) is applied as an exact
+    quarter turn (``torch.rot90``; ``rot90(x, −1) == geometry.rotate(x, π/2)``) and a
+    ``geometry.rotate`` by φ: the scene is quarter-turned first, the map last. So bin k + R/2 of a
+    scene and bin k of the same scene quarter-turned read identical trunk inputs, and their maps come
+    back quarter-turned exactly. Built by rotating an image of pixel ids (exact in ``nearest`` mode).
+    """
+    ids = torch.arange(1, size * size + 1, dtype=torch.int64).view(1, size, size)
+    scene, maps = [], []
+    for k in range(num_rotations):
+        q = (2 * k) // num_rotations
+        phi = (2 * k - q * num_rotations) * math.pi / (2 * num_rotations)
+        scene.append(geometry.rotate(torch.rot90(ids, -q, (-2, -1)), phi, mode="nearest"))
+        maps.append(torch.rot90(geometry.rotate(ids, -phi, mode="nearest"), q, (-2, -1)))
+    return torch.stack(scene).view(num_rotations, -1), torch.stack(maps).view(num_rotations, -1)
+
+
+class QFCN(nn.Module):
+    """Pick/place Q maps over all pixels and R rotation bins. See the module docstring.
+
+    Args:
+        max_height: metres mapped to the top depth class (per task).
+        num_classes: K depth classes of the input quantisation.
+        num_rotations: R rotation bins k·π/R.
+        width: channel multiplier (1.0 = the reference).
+    """
+
+    CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
+
+    def __init__(self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0) -> None:
+        super().__init__()
+        encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
+        if not isinstance(num_rotations, int) or isinstance(num_rotations, bool) or num_rotations < 1:
+            raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
+        if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
+            raise ValueError(f"width must be a positive number, got {width!r}")
+        self.max_height, self.num_classes, self.num_rotations, self.width = float(max_height), num_classes, num_rotations, float(width)
+
+        def ch(n: int) -> int:
+            return scaled_channels(n, width)
+
+        c16, c32, c64, c128, c256 = ch(16), ch(32), ch(64), ch(128), ch(256)
+        self.feature_channels = c16
+        self.conv_1 = nn.Sequential(nn.Conv2d(1, c16, 3, padding=1, bias=False), nn.LeakyReLU(LEAKY_SLOPE))
+        self.layer_1 = BasicBlock(c16, c32, stride=2)
+        self.layer_2 = BasicBlock(c32, c64, stride=2)
+        self.layer_3 = BasicBlock(c64, c128, stride=2)
+        self.layer_4 = BasicBlock(c128, c128, stride=2)
+        self.conv_2 = nn.Sequential(nn.Conv2d(c128, c128, 3, padding=1), nn.LeakyReLU(LEAKY_SLOPE))
+        self.up_4 = _UpBlock(c128 + c128, c128)
+        self.up_3 = _UpBlock(c64 + c128, c64)
+        self.up_2 = _UpBlock(c32 + c64, c32)
+        self.up_1 = _UpBlock(c16 + c32, c16)
+        self.pick_head = _map_head(c16, width)
+
+        hand_convs: list[nn.Module] = []
+        for cin, cout in ((1, c32), (c32, c64), (c64, c128), (c128, c256)):
+            hand_convs += [nn.Conv2d(cin, cout, 3, stride=2, padding=1, bias=False), nn.LeakyReLU(LEAKY_SLOPE)]
+        side = _HAND_PAD // 16
+        self.hand_encoder = nn.Sequential(
+            *hand_convs,
+            nn.Flatten(),
+            nn.Linear(c256 * side * side, ch(1028)),
+            nn.LeakyReLU(LEAKY_SLOPE),
+            nn.Linear(ch(1028), c16 * c16 * 9),
+        )
+        self.place_head = _map_head(c16, width)
+        self.act = nn.LeakyReLU(LEAKY_SLOPE)
+
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.xavier_normal_(m.weight)
+
+        scene_index, map_index = _rotation_tables(num_rotations, geometry.HEIGHTMAP_SIZE)
+        self.register_buffer("_scene_index", scene_index, persistent=False)
+        self.register_buffer("_map_index", map_index, persistent=False)
+
+    # ------------------------------------------------------------------------------------------
+    # rotations: one gather each, through the tables of _rotation_tables
+    # ------------------------------------------------------------------------------------------
+    def _rotate_scene(self, x: torch.Tensor, bins: torch.Tensor | None = None) -> torch.Tensor:
+        """``[N, 1, H, W]`` -> ``[N, R, H, W]`` (all bins) or, with ``bins [N]``, ``[N, 1, H, W]``: the
+        scene in the gripper frame of each bin (pixels from outside the frame read 0)."""
+        n, _, h, w = x.shape
+        flat = F.pad(x.reshape(n, h * w), (1, 0))  # index 0 reads the zero outside the frame
+        if bins is None:
+            return flat.index_select(1, self._scene_index.reshape(-1)).view(n, -1, h, w)
+        return flat.gather(1, self._scene_index.index_select(0, bins)).view(n, 1, h, w)
+
+    def _unrotate_maps(self, maps: torch.Tensor) -> torch.Tensor:
+        """``[N, R, H, W]`` maps in the gripper frames -> the scene frame: ``Q[n, k, row, col]``."""
+        n, r, h, w = maps.shape
+        flat = F.pad(maps.reshape(n, r, h * w), (1, 0))
+        return flat.gather(2, self._map_index.unsqueeze(0).expand(n, r, h * w)).view(n, r, h, w)
+
+    # ------------------------------------------------------------------------------------------
+    # network pieces
+    # ------------------------------------------------------------------------------------------
+    def _trunk(self, x: torch.Tensor) -> torch.Tensor:
+        """[M, 1, H, W] encoded scenes -> [M, C, H, W] features."""
+        inp = self.conv_1(x)
+        if x.device.type == "cpu" and not torch.is_grad_enabled():  # see the module docstring (channels_last)
+            inp = inp.contiguous(memory_format=torch.channels_last)
+        d1 = self.layer_1(inp)
+        d2 = self.layer_2(d1)
+        d3 = self.layer_3(d2)
+        y = self.conv_2(self.layer_4(d3))
+        return self.up_1(self.up_2(self.up_3(self.up_4(y, d3), d2), d1), inp)
+
+    def _hand_kernels(self, in_hand: torch.Tensor) -> torch.Tensor:
+        """[n, 1, 24, 24] encoded hands -> [n, C, C, 3, 3] per-sample kernels."""
+        lo = (_HAND_PAD - in_hand.shape[-1]) // 2
+        hi = _HAND_PAD - in_hand.shape[-1] - lo
+        c = self.feature_channels
+        return self.hand_encoder(F.pad(in_hand, (lo, hi, lo, hi))).view(-1, c, c, 3, 3)
+
+    def _place(self, feat: torch.Tensor, in_hand: torch.Tensor) -> torch.Tensor:
+        """[n, r, C, H, W] features, [n, 1, 24, 24] encoded hands -> [n, r, H, W] place maps."""
+        n, r, c, h, w = feat.shape
+        kernels = self._hand_kernels(in_hand)  # [n, C, C, 3, 3]
+        kernels = kernels.unsqueeze(1).expand(n, r, c, c, 3, 3).reshape(n * r * c, c, 3, 3)
+        y = F.conv2d(feat.reshape(1, n * r * c, h, w), kernels, padding=1, groups=n * r)
+        return self.place_head(self.act(y).view(n * r, c, h, w)).view(n, r, h, w)
+
+    def _maps(self, scenes: torch.Tensor, in_hand: torch.Tensor, holding: torch.Tensor) -> torch.Tensor:
+        """Rotated scenes [N, r, H, W] (encoded), hands [N, 1, 24, 24] (encoded), holding [N] bool
+        -> [N, r, H, W] maps of each sample's head, in the gripper frames."""
+        n, r, h, w = scenes.shape
+        place_rows = holding.nonzero().squeeze(1)
+        n_place = place_rows.numel()
+        if 0 < n_place < n:  # pick rows first, then place rows: each head reads a contiguous slice
+            order = torch.cat(((~holding).nonzero().squeeze(1), place_rows))
+            scenes = scenes.index_select(0, order)
+        feat = self._trunk(scenes.reshape(n * r, 1, h, w)).view(n, r, -1, h, w)
+        n_pick = n - n_place
+        parts = []
+        if n_pick:
+            parts.append(self.pick_head(feat[:n_pick].flatten(0, 1)).view(n_pick, r, h, w))
+        if n_place:
+            parts.append(self._place(feat[n_pick:], in_hand.index_select(0, place_rows) if n_pick else in_hand))
+        if len(parts) == 1:
+            return parts[0]
+        maps = torch.cat(parts)
+        return torch.empty_like(maps).index_copy_(0, order, maps)
+
+    # ------------------------------------------------------------------------------------------
+    # public API
+    # ------------------------------------------------------------------------------------------
+    def _inputs(self, heightmap, in_hand, holding):
+        """Validate and encode; -> batch shape, [N, 1, H, W], [N, 1, h, h] (encoded), [N] bool."""
+        size = geometry.HEIGHTMAP_SIZE
+        batch = check_height_images(heightmap, "heightmap", size)
+        check_height_images(in_hand, "in_hand", geometry.HAND_SIZE, batch)
+        expected = f"bool [*B] or [*B, 1] with *B = {tuple(batch)}"
+        if not torch.is_tensor(holding) or holding.dtype != torch.bool:
+            raise ValueError(f"holding must be {expected}, got {getattr(holding, 'dtype', type(holding).__name__)}")
+        if holding.shape not in (batch, batch + (1,)):
+            raise ValueError(f"holding must be {expected}, got shape {tuple(holding.shape)}")
+        dtype = self.conv_1[0].weight.dtype
+        x = encode_heights(heightmap.reshape(-1, 1, size, size), self.max_height, self.num_classes, dtype)
+        hand = encode_heights(in_hand.reshape(-1, 1, geometry.HAND_SIZE, geometry.HAND_SIZE), self.max_height, self.num_classes, dtype)
+        return batch, x, hand, holding.reshape(-1)
+
+    def _chunks(self, x: torch.Tensor, images_per_sample: int) -> list[slice]:
+        """On CPU, slices of at most ``CHUNK_IMAGES`` trunk images (whole samples; big batches thrash
+        the cache); elsewhere the whole batch at once."""
+        n = x.shape[0]
+        step = max(1, self.CHUNK_IMAGES // images_per_sample) if x.device.type == "cpu" else max(1, n)
+        return [slice(i, i + step) for i in range(0, n, step)]
+
+    def forward(self, heightmap: torch.Tensor, in_hand: torch.Tensor, holding: torch.Tensor) -> torch.Tensor:
+        """Q maps of each sample's current primitive over all rotations.
+
+        Args:
+            heightmap: ``[*B, 1, 128, 128]`` float metres.
+            in_hand: ``[*B, 1, 24, 24]`` float metres (read only where holding).
+            holding: ``[*B]`` or ``[*B, 1]`` bool; False → pick map, True → place map.
+        Returns:
+            ``[*B, R, 128, 128]`` float32; entry ``[..., k, row, col]`` is Q of action (row, col, k).
+        """
+        batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
+        size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
+        parts = [
+            self._unrotate_maps(self._maps(self._rotate_scene(x[sl]), hand[sl], holding[sl]))
+            for sl in self._chunks(x, r)
+        ]
+        if not parts:
+            return x.new_zeros(*batch, r, size, size)
+        return (parts[0] if len(parts) == 1 else torch.cat(parts)).reshape(*batch, r, size, size)
+
+    def action_values(self, heightmap: torch.Tensor, in_hand: torch.Tensor, holding: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Q of the given actions, running only each action's rotation (the training path).
+
+        Args: as :meth:`forward`, plus ``action`` ``[*B, 3]`` integer (row, col, rotation bin).
+        Returns: ``[*B]`` float32, ``forward(...)[..., k, row, col]`` up to float summation order
+        (the trunk runs on other batch sizes, and without channels_last when gradients are on).
+        """
+        batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
+        size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
+        if not torch.is_tensor(action) or action.shape != batch + (3,) or action.is_floating_point() or action.dtype == torch.bool:
+            got = f"{action.dtype} {tuple(action.shape)}" if torch.is_tensor(action) else type(action).__name__
+            raise ValueError(f"action must be an integer [*B, 3] (row, col, rot) tensor with *B = {tuple(batch)}, got {got}")
+        action = action.reshape(-1, 3).long()
+        pixel_ok = (action[:, :2] >= 0) & (action[:, :2] < size)
+        if action.numel() and not bool(pixel_ok.all() & ((action[:, 2] >= 0) & (action[:, 2] < r)).all()):
+            raise ValueError(f"action must have row, col in [0, {size}) and rot in [0, {r}); got values in [{int(action.min())}, {int(action.max())}]")
+        parts = [self._action_chunk(x[sl], hand[sl], holding[sl], action[sl]) for sl in self._chunks(x, 1)]
+        if not parts:
+            return x.new_zeros(batch)
+        return (parts[0] if len(parts) == 1 else torch.cat(parts)).reshape(batch)
+
+    def _action_chunk(self, x: torch.Tensor, hand: torch.Tensor, holding: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Encoded [n, 1, H, W], [n, 1, 24, 24], [n] bool, [n, 3] long -> [n] Q of the actions."""
+        n, size = x.shape[0], x.shape[-1]
+        bins = action[:, 2]
+        maps = self._maps(self._rotate_scene(x, bins), hand, holding)  # [n, 1, H, W], gripper frames
+        pixel = self._map_index[bins, action[:, 0] * size + action[:, 1]]  # [n], 0 = outside the frame
+        return F.pad(maps.reshape(n, -1), (1, 0)).gather(1, pixel.unsqueeze(1)).squeeze(1)
+
+
+def build_q_network(preset: str, *, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float | None = None) -> QFCN:
+    """A :class:`QFCN` at a preset width (``Q_PRESETS``); ``width`` overrides the preset's."""
+    if preset not in Q_PRESETS:
+        raise ValueError(f"unknown Q network preset {preset!r}; expected one of {sorted(Q_PRESETS)}")
+    return QFCN(max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width)

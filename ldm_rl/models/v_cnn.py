@@ -1,0 +1,116 @@
+"""The agent's state-value network: V(s) and the reward of being in s, from the scene and the in-hand image.
+
+Architecture (the reference ``StateValueModel``; channel and hidden sizes at ``width`` = 1, every one
+scaled by ``width``; no BatchNorm, LeakyReLU 0.01, ``kaiming_normal_(fan_out, leaky_relu 0.01)`` on every
+conv weight, PyTorch defaults for conv biases and linear layers):
+
+* scene trunk: four basic blocks stride 2, 1→32→64→128→256 (128² → 256×8×8);
+* hand trunk: the in-hand image zero-padded 24 → 64, three basic blocks stride 2, 1→32→64→128 (→ 128×8×8);
+* ``cat`` → 384×8×8, then two separate, identical heads (``value`` and ``reward``): 3×3 conv stride 2
+  384→256 (bias) → LReLU → flatten 4096 → 2048 → 1028 → 256 → 1 (LReLU between, no output activation).
+
+Parameters: 24,801,418 at ``width=1`` (scene 1,213,760; hand 296,256; each head 11,645,701), exactly the
+reference's. Inputs are heights in metres, encoded as ``heights_to_classes(h) / (K − 1)``
+(:func:`blocks.encode_heights`). On CPU without gradients, large batches run in chunks of ``CHUNK`` states
+(measured on CPU: 16 a pass is ~2× faster per state than 64 or more; channels_last gains nothing here).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ldm_rl import geometry
+from ldm_rl.models.blocks import LEAKY_SLOPE, BasicBlock, check_height_images, encode_heights, scaled_channels
+
+__all__ = ["VCNN", "V_PRESETS", "build_value_network"]
+
+V_PRESETS = {"paper": 1.0, "lite": 0.5}
+
+_HAND_PAD = 64  # the in-hand image is zero-padded to 64×64 before its trunk
+
+
+def _stages(channels: list[int]) -> nn.Sequential:
+    return nn.Sequential(*(BasicBlock(cin, cout, stride=2) for cin, cout in zip(channels[:-1], channels[1:])))
+
+
+class VCNN(nn.Module):
+    """State value and state reward of (scene, in-hand image). See the module docstring.
+
+    Args:
+        max_height: metres mapped to the top depth class (per task).
+        num_classes: K depth classes of the input quantisation.
+        width: channel multiplier (1.0 = the reference).
+    """
+
+    CHUNK = 16  # states per pass without gradients (measured: 64 a pass is ~2x slower per state)
+
+    def __init__(self, max_height: float, num_classes: int = 21, width: float = 1.0) -> None:
+        super().__init__()
+        encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
+        if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
+            raise ValueError(f"width must be a positive number, got {width!r}")
+        self.max_height, self.num_classes, self.width = float(max_height), num_classes, float(width)
+
+        def ch(n: int) -> int:
+            return scaled_channels(n, width)
+
+        self.scene_trunk = _stages([1, ch(32), ch(64), ch(128), ch(256)])
+        self.hand_trunk = _stages([1, ch(32), ch(64), ch(128)])
+        self.value_head = self._head(ch(256) + ch(128), ch)
+        self.reward_head = self._head(ch(256) + ch(128), ch)
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, a=LEAKY_SLOPE, mode="fan_out", nonlinearity="leaky_relu")
+
+    @staticmethod
+    def _head(in_channels: int, ch) -> nn.Sequential:
+        side = geometry.HEIGHTMAP_SIZE // 32  # 128 → 8 (trunk) → 4 (head conv)
+        sizes = [ch(256) * side * side, ch(2048), ch(1028), ch(256)]
+        layers: list[nn.Module] = [nn.Conv2d(in_channels, ch(256), 3, stride=2, padding=1), nn.LeakyReLU(LEAKY_SLOPE), nn.Flatten()]
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+            layers += [nn.Linear(fan_in, fan_out), nn.LeakyReLU(LEAKY_SLOPE)]
+        layers.append(nn.Linear(sizes[-1], 1))
+        return nn.Sequential(*layers)
+
+    def _features(self, scene: torch.Tensor, hand: torch.Tensor) -> torch.Tensor:
+        """Encoded [n, 1, 128, 128], [n, 1, 24, 24] -> [n, 384·w, 8, 8]."""
+        lo = (_HAND_PAD - hand.shape[-1]) // 2
+        hi = _HAND_PAD - hand.shape[-1] - lo
+        hand = F.pad(hand, (lo, hi, lo, hi))
+        return torch.cat((self.scene_trunk(scene), self.hand_trunk(hand)), dim=1)
+
+    def _run(self, heightmap: torch.Tensor, in_hand: torch.Tensor, heads: tuple[nn.Module, ...]) -> list[torch.Tensor]:
+        size, hand_size = geometry.HEIGHTMAP_SIZE, geometry.HAND_SIZE
+        batch = check_height_images(heightmap, "heightmap", size)
+        check_height_images(in_hand, "in_hand", hand_size, batch)
+        dtype = self.value_head[0].weight.dtype
+        scene = encode_heights(heightmap.reshape(-1, 1, size, size), self.max_height, self.num_classes, dtype)
+        hand = encode_heights(in_hand.reshape(-1, 1, hand_size, hand_size), self.max_height, self.num_classes, dtype)
+        n = scene.shape[0]
+        step = self.CHUNK if scene.device.type == "cpu" and not torch.is_grad_enabled() else n
+        outs: list[list[torch.Tensor]] = [[] for _ in heads]
+        for i in range(0, n, max(1, step)):
+            feat = self._features(scene[i : i + step], hand[i : i + step])
+            for out, head in zip(outs, heads):
+                out.append(head(feat))
+        return [(o[0] if len(o) == 1 else torch.cat(o)).reshape(*batch, 1) if o else scene.new_zeros(*batch, 1) for o in outs]
+
+    def forward(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> torch.Tensor:
+        """``heightmap [*B, 1, 128, 128]``, ``in_hand [*B, 1, 24, 24]`` float metres -> V ``[*B, 1]`` float32."""
+        return self._run(heightmap, in_hand, (self.value_head,))[0]
+
+    def value_and_reward(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`forward`, -> (V ``[*B, 1]``, reward of being in the state ``[*B, 1]``); one shared trunk pass."""
+        value, reward = self._run(heightmap, in_hand, (self.value_head, self.reward_head))
+        return value, reward
+
+
+def build_value_network(preset: str, *, max_height: float, num_classes: int = 21, width: float | None = None) -> VCNN:
+    """A :class:`VCNN` at a preset width (``V_PRESETS``); ``width`` overrides the preset's."""
+    if preset not in V_PRESETS:
+        raise ValueError(f"unknown value network preset {preset!r}; expected one of {sorted(V_PRESETS)}")
+    return VCNN(max_height, num_classes, V_PRESETS[preset] if width is None else width)

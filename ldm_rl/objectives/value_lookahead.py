@@ -1,0 +1,198 @@
+"""``LookaheadLoss``: the Q and V losses of the LDM agent with one-step lookahead targets (paper §3.4).
+
+Conventions (the reference's, which make ``Q̂(s, a) = V(f(s, a))`` right at the last step): ``V(s)``
+includes the reward received on *arriving* in ``s``, so for a transition ``(s, a, r, s')``
+
+* ``y_V = r + γ·(1 − terminated)·max_{a' ∈ Ā_N(s')} V⁻(f⁻(s', a'))`` is the target of ``V(s')`` — on the
+  real next state and (option ``value_on_prediction``, the reference's t = 1 term) on the model's
+  prediction ``f(s, a)``, the kind of state V scores when planning;
+* ``y_Q = r + γ·(1 − terminated)·max_{a'} Q⁻(s', a')`` is the target of ``Q(s, a)`` (plain DQN max);
+* the reward head learns ``R(s') ≈ r`` on the same states (Random Shooting and Dyna-Q use it).
+
+``Ā_N(s')`` are N proposals drawn from the target Q map by
+:func:`~ldm_rl.planning.sampling.sample_candidates` (argmax with inhibition by default: deterministic
+targets). The target Q map is computed ONCE per state and serves both targets; the whole minibatch is
+planned in one batched pass (``lookahead``), terminal transitions skipped. Target networks are the
+``target_*_params`` of this module (TorchRL's ``convert_to_functional``), synced by a TorchRL target
+updater (``HardUpdate``). Predictions for targets run in eval mode without gradients.
+
+Priorities (reference): ``td_error = |V(s') − y_V|`` per sample, written into the batch under the
+``priority`` key; losses are Huber (smooth L1) weighted by ``priority_weight`` when present.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.objectives import LossModule
+
+from ldm_rl import keys
+from ldm_rl.planning.lookahead import lookahead
+from ldm_rl.planning.sampling import sample_candidates
+from ldm_rl.runtime import eval_mode
+
+__all__ = ["LookaheadLoss"]
+
+
+class LookaheadLoss(LossModule):
+    """Q loss, V loss (real and predicted next states) and reward-head loss with lookahead targets.
+
+    Args:
+        q_network: ``(heightmap, in_hand, holding) -> [B, R, H, W]`` with ``action_values(..., action) -> [B]``.
+        value_network: ``(heightmap, in_hand) -> [B, 1]`` with ``value_and_reward``.
+        dynamics: the :class:`~ldm_rl.world_model.DynamicsModel` (only its target copy is used here; the
+            LDM's own loss is :class:`~ldm_rl.objectives.LDMLoss`).
+        gamma: discount γ (γ = 1 is the paper's ``r + max Q̂``; the reference uses 0.95).
+        num_target_candidates: N of the target's ``max`` over ``Ā_N(s')``.
+        target_proposal: keyword arguments of ``sample_candidates`` for the target proposals
+            (``mode``, ``tau``, ``beta``, ``sigma``, ``sigma_rot``).
+        value_on_prediction: also fit ``V(f(s, a))`` to ``y_V`` (uses ``next_logits`` from the LDM loss
+            when the batch holds them, else one eval-mode prediction).
+        chunk_size: state-candidate pairs per LDM/V pass of the targets.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Input/output keys; change them with ``loss.set_keys(...)``."""
+
+        heightmap: NestedKey = keys.HEIGHTMAP
+        in_hand: NestedKey = keys.IN_HAND
+        holding: NestedKey = keys.HOLDING
+        action: NestedKey = keys.ACTION
+        reward: NestedKey = (keys.NEXT, keys.REWARD)
+        terminated: NestedKey = (keys.NEXT, keys.TERMINATED)
+        next_logits: NestedKey = keys.NEXT_LOGITS
+        priority: NestedKey = "td_error"
+        priority_weight: NestedKey = "priority_weight"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+
+    q_network: nn.Module
+    q_network_params: TensorDictParams
+    target_q_network_params: TensorDictParams
+    value_network: nn.Module
+    value_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
+    dynamics: nn.Module
+    dynamics_params: TensorDictParams
+    target_dynamics_params: TensorDictParams
+
+    def __init__(
+        self,
+        q_network: nn.Module,
+        value_network: nn.Module,
+        dynamics: nn.Module,
+        *,
+        gamma: float = 0.95,
+        num_target_candidates: int = 10,
+        target_proposal: dict | None = None,
+        value_on_prediction: bool = True,
+        chunk_size: int = 64,
+    ) -> None:
+        super().__init__()
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
+        if not isinstance(num_target_candidates, int) or num_target_candidates < 1:
+            raise ValueError(f"num_target_candidates must be a positive int, got {num_target_candidates!r}")
+        self.convert_to_functional(q_network, "q_network", create_target_params=True)
+        self.convert_to_functional(value_network, "value_network", create_target_params=True)
+        self.convert_to_functional(dynamics, "dynamics", create_target_params=True)
+        self.gamma, self.num_target_candidates = float(gamma), num_target_candidates
+        self.target_proposal = {"mode": "argmax", "tau": 1.0, "beta": 1.0, "sigma": 2.0, "sigma_rot": 1.0, **(target_proposal or {})}
+        self.value_on_prediction, self.chunk_size = bool(value_on_prediction), int(chunk_size)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        k = self.tensor_keys
+        state = [k.heightmap, k.in_hand, k.holding]
+        return [*state, k.action, *[(keys.NEXT, key) for key in state], k.reward, k.terminated]
+
+    @contextlib.contextmanager
+    def target_networks(self):
+        """Within the block ``self.q_network`` / ``value_network`` / ``dynamics`` carry the target weights."""
+        # plain nested ``with``: ExitStack would test the TensorDict that ``to_module``'s exit returns
+        with self.target_q_network_params.to_module(self.q_network, preserve_module_state=False), \
+                self.target_value_network_params.to_module(self.value_network, preserve_module_state=False), \
+                self.target_dynamics_params.to_module(self.dynamics, preserve_module_state=False):
+            yield
+
+    @torch.no_grad()
+    def targets(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(y_Q, y_V)``, each ``[B, 1]`` float32, for a flat batch of transitions (target networks)."""
+        k = self.tensor_keys
+        reward = tensordict.get(k.reward).reshape(-1, 1).float()
+        live = ~tensordict.get(k.terminated).reshape(-1).bool()
+        q_next = torch.zeros_like(reward)
+        v_next = torch.zeros_like(reward)
+        rows = live.nonzero().squeeze(1)
+        if rows.numel():
+            heightmap = tensordict.get((keys.NEXT, k.heightmap)).index_select(0, rows)
+            in_hand = tensordict.get((keys.NEXT, k.in_hand)).index_select(0, rows)
+            holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1, 1).bool().index_select(0, rows)
+            with self.target_networks(), eval_mode(self.q_network, self.value_network, self.dynamics):
+                q_map = self.q_network(heightmap, in_hand, holding)
+                candidates = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)
+                scores = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
+                                   chunk_size=self.chunk_size).values
+            q_next[rows] = q_map.flatten(1).amax(1, keepdim=True)
+            v_next[rows] = scores.amax(1, keepdim=True)
+        return reward + self.gamma * q_next, reward + self.gamma * v_next
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
+        if tensordict.batch_dims != 1 or tensordict.batch_size[0] == 0:
+            raise ValueError(f"{type(self).__name__} needs a flat, non-empty batch of transitions, got batch_size {tuple(tensordict.batch_size)}")
+        k = self.tensor_keys
+        q_target, v_target = self.targets(tensordict)
+        weight = tensordict.get(k.priority_weight, None)
+        weight = torch.ones_like(q_target) if weight is None else weight.reshape(-1, 1).to(q_target)
+
+        def huber(pred, target):
+            return (F.smooth_l1_loss(pred, target, reduction="none") * weight).mean()
+
+        state = [tensordict.get(key) for key in (k.heightmap, k.in_hand, k.holding)]
+        q_pred = self.q_network.action_values(*state, tensordict.get(k.action)).reshape(-1, 1)
+        next_heightmap = tensordict.get((keys.NEXT, k.heightmap))
+        next_in_hand = tensordict.get((keys.NEXT, k.in_hand))
+        reward = tensordict.get(k.reward).reshape(-1, 1).float()
+        v_real, r_real = self.value_network.value_and_reward(next_heightmap, next_in_hand)
+        loss_value, loss_reward = huber(v_real, v_target), huber(r_real, reward)
+        if self.value_on_prediction:
+            predicted = self._predicted_next_state(tensordict)
+            v_pred, r_pred = self.value_network.value_and_reward(predicted.heightmap, next_in_hand)
+            loss_value = loss_value + huber(v_pred, v_target)
+            loss_reward = loss_reward + huber(r_pred, reward)
+        td_error = (v_real.detach() - v_target).abs().reshape(-1)
+        tensordict.set(k.priority, td_error)
+        return TensorDict(
+            {
+                "loss_q": huber(q_pred, q_target),
+                "loss_value": loss_value,
+                "loss_reward": loss_reward,
+                "q_target": q_target.mean(),
+                "value_target": v_target.mean(),
+                "state_value": v_real.detach().mean(),
+                "td_error": td_error.mean(),
+            },
+            batch_size=[],
+        )
+
+    def _predicted_next_state(self, tensordict: TensorDictBase):
+        """``f(s, a)`` with the online model: from the LDM loss' ``next_logits`` when present."""
+        k = self.tensor_keys
+        args = [tensordict.get(key) for key in (k.heightmap, k.in_hand, k.holding, k.action)]
+        logits = tensordict.get(k.next_logits, None)
+        if logits is not None:
+            return self.dynamics.next_state_from_logits(*args, logits)
+        with eval_mode(self.dynamics):
+            return self.dynamics.predict(*args)

@@ -1,0 +1,79 @@
+"""Batched one-step lookahead: ``V(f(s, a))`` for N candidate actions of every state, in one pass.
+
+The dynamics model ``f`` (one LDM head per sample, chosen by the hand state) predicts each candidate's
+next state; the value network scores it. Both run in eval mode under ``no_grad`` (BatchNorm statistics
+untouched, the callers' train/eval flags restored). The B·N state-candidate pairs are processed in
+chunks of ``chunk_size`` so large batches (the training targets: 32 states × N) stay in cache; the
+states are gathered per chunk, never copied N times as a whole.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from ldm_rl.runtime import eval_mode
+
+__all__ = ["LookaheadResult", "lookahead"]
+
+
+class LookaheadResult(NamedTuple):
+    """Scores of ``[B, N]`` candidates."""
+
+    values: torch.Tensor  # [B, N] float32: V(f(s, a))
+    rewards: torch.Tensor | None  # [B, N] float32: R(f(s, a)) (reward head), when asked for
+    next_holding: torch.Tensor  # [B, N] bool: predicted hand state after the action
+
+
+def lookahead(
+    dynamics: nn.Module,
+    value_network: nn.Module,
+    heightmap: torch.Tensor,
+    in_hand: torch.Tensor,
+    holding: torch.Tensor,
+    candidates: torch.Tensor,
+    *,
+    chunk_size: int = 64,
+    with_reward: bool = False,
+) -> LookaheadResult:
+    """Score ``candidates`` ``[B, N, 3]`` int64 (row, col, rot) of the states ``heightmap``
+    ``[B, 1, 128, 128]`` f32 m, ``in_hand`` ``[B, 1, 24, 24]`` f32 m, ``holding`` ``[B, 1]`` bool.
+
+    ``dynamics`` is a :class:`~ldm_rl.world_model.DynamicsModel`; ``value_network`` maps
+    (heightmap, in_hand) to ``[M, 1]`` values and offers ``value_and_reward`` when ``with_reward``.
+    """
+    if not torch.is_tensor(candidates) or candidates.dim() != 3 or candidates.shape[-1] != 3:
+        shape = tuple(candidates.shape) if torch.is_tensor(candidates) else type(candidates).__name__
+        raise ValueError(f"candidates must be [B, N, 3] int64 (row, col, rot), got {shape}")
+    if heightmap.dim() != 4 or heightmap.shape[0] != candidates.shape[0]:
+        raise ValueError(f"heightmap must be [B, 1, H, W] with B = {candidates.shape[0]} (candidates' batch), got {tuple(heightmap.shape)}")
+    if not isinstance(chunk_size, int) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+    b, n = candidates.shape[:2]
+    flat_actions = candidates.reshape(b * n, 3).long()
+    owner = torch.arange(b, device=candidates.device).repeat_interleave(n)  # state row of each pair
+    holding = holding.reshape(b, 1).bool()
+    values, rewards, next_holding = [], [], []
+    with eval_mode(dynamics, value_network):
+        for start in range(0, b * n, chunk_size):
+            rows = owner[start : start + chunk_size]
+            pred = dynamics.predict(
+                heightmap.index_select(0, rows),
+                in_hand.index_select(0, rows),
+                holding.index_select(0, rows),
+                flat_actions[start : start + chunk_size],
+            )
+            if with_reward:
+                value, reward = value_network.value_and_reward(pred.heightmap, pred.in_hand)
+                rewards.append(reward.reshape(-1))
+            else:
+                value = value_network(pred.heightmap, pred.in_hand)
+            values.append(value.reshape(-1))
+            next_holding.append(pred.holding.reshape(-1))
+    return LookaheadResult(
+        torch.cat(values).reshape(b, n),
+        torch.cat(rewards).reshape(b, n) if with_reward else None,
+        torch.cat(next_holding).reshape(b, n),
+    )

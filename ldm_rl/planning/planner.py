@@ -1,0 +1,161 @@
+"""``LookaheadPlanner``: the paper's policy as a TensorDict module (``env.rollout``, any TorchRL collector).
+
+One decision, batched over ``[*B]`` states (paper §3.3–3.4):
+
+1. ``Q`` map of the current primitive over R rotations (``action_value`` ``[*B, R, 128, 128]``);
+2. N diverse candidates from ``softmax(Q/τ)`` with Gaussian inhibition (β, σ, σ_rot) around every draw
+   (:func:`~ldm_rl.planning.sampling.sample_candidates`), or the reference's argmax-with-inhibition;
+3. every candidate scored by ``V(f(s, a))`` in one batched pass (:func:`~ldm_rl.planning.lookahead.lookahead`);
+4. the action: a draw from ``softmax(score/τ_v)`` while exploring, the best-scored candidate under
+   ``ExplorationType.DETERMINISTIC`` (or MODE/MEAN); outside any exploration context TorchRL reports
+   no type and the planner explores.
+
+All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
+τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
+which the training loop advances with :meth:`LookaheadPlanner.set_step`.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Union
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+from ldm_rl import keys
+from ldm_rl.planning.lookahead import lookahead
+from ldm_rl.planning.sampling import sample_candidates
+from ldm_rl.runtime import eval_mode
+from ldm_rl.schedules import Constant
+
+__all__ = ["LookaheadPlanner", "is_greedy"]
+
+ScheduleLike = Union[float, Callable[[int], float]]
+PROPOSAL_MODES = ("softmax", "argmax")
+_GREEDY = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
+
+
+def is_greedy() -> bool:
+    """True under ``set_exploration_type(DETERMINISTIC | MODE | MEAN)``; False when exploring or unset."""
+    return exploration_type() in _GREEDY
+
+
+def as_schedule(value: ScheduleLike, name: str) -> Callable[[int], float]:
+    """A float becomes a constant schedule; a callable is kept."""
+    if callable(value):
+        return value
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return Constant(float(value))
+    raise ValueError(f"{name} must be a number or a schedule step -> float, got {value!r}")
+
+
+class LookaheadPlanner(TensorDictModuleBase):
+    """Q proposals → LDM lookahead → V scores → action.
+
+    Args:
+        q_network: ``(heightmap, in_hand, holding) -> [B, R, H, W]`` Q of the current primitive.
+        dynamics: the :class:`~ldm_rl.world_model.DynamicsModel`.
+        value_network: ``(heightmap, in_hand) -> [B, 1]``.
+        num_candidates: N proposals per decision.
+        tau, beta, sigma, sigma_rot: proposal temperature (Q units), inhibition height, its width in
+            pixels and in rotation bins (floats or schedules).
+        tau_value: temperature of the final choice among the N scores (V units) while exploring.
+        proposal: ``"softmax"`` (paper) or ``"argmax"`` (reference code) while exploring.
+        greedy_proposal: the proposal mode under DETERMINISTIC (``"argmax"``: a deterministic policy).
+        chunk_size: state-candidate pairs per LDM/V pass.
+        write_action_value: also write the ``[*B, R, H, W]`` Q map (``action_value``), 512 KB per state.
+
+    Reads ``heightmap``, ``in_hand``, ``holding``; writes ``action`` ``[*B, 3]``, ``candidate_actions``
+    ``[*B, N, 3]``, ``candidate_values`` ``[*B, N]``, ``state_value`` ``[*B, 1]`` and ``action_value``.
+    """
+
+    in_keys = [keys.HEIGHTMAP, keys.IN_HAND, keys.HOLDING]
+
+    def __init__(
+        self,
+        q_network: nn.Module,
+        dynamics: nn.Module,
+        value_network: nn.Module,
+        *,
+        num_candidates: int = 10,
+        tau: ScheduleLike = 1.0,
+        beta: ScheduleLike = 1.0,
+        sigma: ScheduleLike = 2.0,
+        sigma_rot: ScheduleLike = 1.0,
+        tau_value: ScheduleLike = 0.1,
+        proposal: str = "softmax",
+        greedy_proposal: str = "argmax",
+        chunk_size: int = 64,
+        write_action_value: bool = True,
+    ) -> None:
+        super().__init__()
+        if not isinstance(num_candidates, int) or num_candidates < 1:
+            raise ValueError(f"num_candidates must be a positive int, got {num_candidates!r}")
+        for name, mode in (("proposal", proposal), ("greedy_proposal", greedy_proposal)):
+            if mode not in PROPOSAL_MODES:
+                raise ValueError(f"{name} must be one of {PROPOSAL_MODES}, got {mode!r}")
+        self.q_network, self.dynamics, self.value_network = q_network, dynamics, value_network
+        self.num_candidates, self.proposal, self.greedy_proposal = num_candidates, proposal, greedy_proposal
+        self.chunk_size, self.write_action_value = int(chunk_size), bool(write_action_value)
+        self.schedules = {
+            name: as_schedule(value, name)
+            for name, value in (("tau", tau), ("beta", beta), ("sigma", sigma), ("sigma_rot", sigma_rot), ("tau_value", tau_value))
+        }
+        self.step = 0
+        self.out_keys = [keys.ACTION, keys.CANDIDATE_ACTIONS, keys.CANDIDATE_VALUES, keys.STATE_VALUE] + (
+            [keys.ACTION_VALUE] if write_action_value else []
+        )
+
+    def set_step(self, step: int) -> None:
+        """Advance the schedules to training step ``step``."""
+        if not isinstance(step, int) or step < 0:
+            raise ValueError(f"step must be a non-negative int, got {step!r}")
+        self.step = step
+
+    def hyperparameters(self) -> dict[str, float]:
+        """The schedules' current values (τ, β, σ, σ_rot, τ_v)."""
+        return {name: float(schedule(self.step)) for name, schedule in self.schedules.items()}
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
+        unbatched = tensordict.batch_dims == 0
+        td = tensordict.unsqueeze(0) if unbatched else tensordict
+        batch = td.batch_size
+        flat = td.reshape(-1)
+        heightmap, in_hand = flat.get(keys.HEIGHTMAP), flat.get(keys.IN_HAND)
+        holding = flat.get(keys.HOLDING).reshape(-1, 1).bool()
+        decision = self.decide(heightmap, in_hand, holding, greedy=is_greedy())
+        out = {name: value.reshape(*batch, *value.shape[1:]) for name, value in decision.items()}
+        for name, value in out.items():
+            tensordict.set(name, value.squeeze(0) if unbatched else value)
+        return tensordict
+
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
+        """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]}``."""
+        hp = self.hyperparameters()
+        with eval_mode(self.q_network, self.dynamics, self.value_network):
+            q_map = self.q_network(heightmap, in_hand, holding)
+            candidates = sample_candidates(
+                q_map, self.num_candidates, tau=hp["tau"], beta=hp["beta"], sigma=hp["sigma"],
+                sigma_rot=hp["sigma_rot"], mode=self.greedy_proposal if greedy else self.proposal,
+            )
+            values = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
+                               chunk_size=self.chunk_size).values
+            if greedy:
+                choice = values.argmax(-1)
+            else:
+                choice = torch.multinomial(torch.softmax(values / hp["tau_value"], -1), 1).squeeze(-1)
+            action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
+            state_value = self.value_network(heightmap, in_hand)
+        out = {
+            keys.ACTION: action,
+            keys.CANDIDATE_ACTIONS: candidates,
+            keys.CANDIDATE_VALUES: values,
+            keys.STATE_VALUE: state_value,
+        }
+        if self.write_action_value:
+            out[keys.ACTION_VALUE] = q_map
+        return out

@@ -1,0 +1,245 @@
+"""Train an agent online (agent=ldm: the paper's Q → LDM → V lookahead) and evaluate its greedy policy.
+
+    python recipes/train_policy.py                                     # LDM agent, 3-block stacking, lite
+    python recipes/train_policy.py experiment=stacking_lite            # the 2-hour CPU acceptance run
+    python recipes/train_policy.py env=house_building schedule.total_episodes=5000
+    python recipes/train_policy.py -m seed=0,1 experiment=stacking_lite
+
+The loop, in order: seed the replay buffer with expert episodes → (optional) LDM-only pretraining →
+collect one step at a time with a TorchRL ``Collector`` running the planner (exploring) → push finished
+episodes into prioritized replay → ``schedule.updates_per_step`` agent updates per step (new priorities
+written back, β annealed) → every ``schedule.eval_every`` updates the greedy policy plays
+``schedule.eval_episodes`` episodes on a separate env. Writes to the run folder: ``curve.csv`` (success
+against episodes, env steps, updates and wall-clock), ``learning_curve.png``, ``checkpoint.pt`` (every
+``schedule.checkpoint_every`` updates, at the end of an episode, and at the end), ``final_metrics.json``
+and the logger's scalars.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+from collections import deque
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from ldm_rl.config_schema import ConfigError, TrainPolicyConfig, check_command_line, validate_config
+
+TRANSITION_KEYS = ("heightmap", "in_hand", "holding", "action",
+                   ("next", "heightmap"), ("next", "in_hand"), ("next", "holding"), ("next", "reward"),
+                   ("next", "done"), ("next", "terminated"), ("next", "truncated"))
+log = logging.getLogger("train_policy")
+CURVE_FIELDS = ("updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length")
+
+
+def expert_episodes(cfg: DictConfig) -> list:
+    """``cfg.schedule.expert_episodes`` scripted-expert episodes, each a TensorDict ``[T]``."""
+    import torch
+
+    from ldm_rl.data.demos import collect_demos
+
+    s = cfg.schedule
+    demos = collect_demos(OmegaConf.to_container(cfg.env, resolve=True), num_episodes=int(s.expert_episodes),
+                          seed=int(cfg.seed) + 10_000, procedure=s.expert_procedure,
+                          noise=OmegaConf.to_container(s.expert_noise, resolve=True), progress=bool(s.progress))
+    lengths = torch.unique_consecutive(demos["episode"], return_counts=True)[1].tolist()
+    return list(demos.select(*TRANSITION_KEYS).split(lengths))
+
+
+def write_curve(rows: list[dict], out_dir, title: str) -> None:
+    """curve.csv and learning_curve.png (success against episodes and against wall-clock)."""
+    import csv
+
+    from ldm_rl.runtime import atomic_path
+
+    with atomic_path(out_dir / "curve.csv") as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CURVE_FIELDS)
+        writer.writeheader()
+        writer.writerows({k: row[k] for k in CURVE_FIELDS} for row in rows)
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for ax, x, label in ((axes[0], "episodes", "training episodes"), (axes[1], "wall_s", "wall-clock (min)")):
+        xs = [r[x] / (60 if x == "wall_s" else 1) for r in rows]
+        ax.plot(xs, [r["success_rate"] for r in rows], "o-", label="greedy success rate")
+        ax.fill_between(xs, [r["ci_low"] for r in rows], [r["ci_high"] for r in rows], alpha=0.25, label="95 % interval")
+        ax.set_xlabel(label)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success rate")
+    axes[0].legend(loc="lower right")
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(out_dir / "learning_curve.png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train_policy")
+def main(cfg: DictConfig) -> dict:
+    """The run, with one-line reports of a stop signal or a bad checkpoint/config."""
+    from ldm_rl.checkpoint import CheckpointError, RunStopped
+    from ldm_rl.runtime import hydra_output_dir
+
+    try:
+        return train(cfg)
+    except RunStopped as stopped:
+        print(f"{stopped}; resume with: python {sys.argv[0]} resume=true hydra.run.dir={hydra_output_dir()}",
+              file=sys.stderr, flush=True)
+        raise SystemExit(stopped.exit_code) from None
+    except (ConfigError, CheckpointError) as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+
+
+def train(cfg: DictConfig) -> dict:
+    """Seed, pretrain, collect, update, evaluate, checkpoint (see the module docstring)."""
+    import torch
+    from hydra.utils import instantiate
+    from torchrl.collectors import Collector
+
+    from ldm_rl.agents import build_agent
+    from ldm_rl.checkpoint import (CHECKPOINT_NAME, RunStopped, StopSignals, capture_rng_state, clean_stale_temporaries,
+                                   load_checkpoint, restore_rng_state, save_checkpoint)
+    from ldm_rl.data.replay import FrameReplay
+    from ldm_rl.envs import make_env_from_config
+    from ldm_rl.envs.torchrl_env import unwrap
+    from ldm_rl.evaluation import evaluate_policy
+    from ldm_rl.runtime import atomic_write_text, hydra_output_dir, make_logger, resolve_device, \
+        seed_everything, set_threads
+
+    validate_config(cfg, TrainPolicyConfig)  # the command line was checked before Hydra; this covers sweep jobs
+    set_threads(cfg.threads)
+    seed_everything(int(cfg.seed))
+    device = resolve_device(cfg.device)
+    out_dir = hydra_output_dir()
+    clean_stale_temporaries(out_dir)
+    checkpoint_path = out_dir / CHECKPOINT_NAME
+    if cfg.resume and not checkpoint_path.exists():
+        raise ValueError(f"resume=true but {checkpoint_path} does not exist; pass the run's folder: "
+                         f"resume=true hydra.run.dir=<outputs/.../run folder>")
+    s = cfg.schedule
+    start = time.perf_counter()
+    max_height = float(cfg.env.max_height)
+    agent = build_agent(cfg, max_height).to(device)
+    replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=agent.planner.dynamics.num_classes,
+                         batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),
+                         priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus),
+                         scratch_dir=cfg.replay.scratch_dir)
+    beta = instantiate(cfg.replay.beta)
+    logger = make_logger(cfg.logger, out_dir)
+    task = f"{cfg.env.id} ({cfg.env.num_objects} objects)"
+    # the k-th training episode's scene comes from seed reset_seed + k, so a resumed run replays the same scenes
+    env = make_env_from_config(cfg.env, reset_seed=int(cfg.seed) * 1_000_000)
+    eval_env = make_env_from_config(cfg.env)
+    counters = {"episodes": 0, "env_steps": 0}
+    curve, steps, recent = [], [], deque(maxlen=100)
+    metrics: dict[str, float] = {}
+    meta = {"kind": "agent", "agent": agent.name, "preset": str(cfg.agent.preset or cfg.model.preset), "task": cfg.env.id,
+            "config": OmegaConf.to_container(cfg, resolve=True)}
+
+    def evaluate(episodes: int) -> dict:
+        result = evaluate_policy(eval_env, agent.policy, episodes, seed=int(cfg.seed) + 1_000_000)
+        scores = {("eval_episodes" if key == "episodes" else key): value for key, value in result.as_dict().items()}
+        row = {"updates": agent.updates, **counters, "wall_s": time.perf_counter() - start, **scores}
+        curve.append(row)
+        write_curve(curve, out_dir, f"{agent.name} agent, {task}, seed {cfg.seed}")
+        if logger is not None:
+            for key in ("success_rate", "ci_low", "ci_high", "mean_length"):
+                logger.log_scalar(f"eval/{key}", row[key], step=counters["episodes"])
+        log.info(f"[{row['wall_s'] / 60:6.1f} min] updates {agent.updates:6d}  episodes {counters['episodes']:5d}  eval {result}")
+        return row
+
+    def save() -> None:
+        """At an episode boundary: weights, optimisers, schedules, replay, every RNG, counters, curve."""
+        replay.dumps(out_dir / "replay")
+        state = {"agent": agent.state_dict(), "training": agent.training_state(), "counters": dict(counters),
+                 "curve": curve, "recent": list(recent), "wall_s": time.perf_counter() - start,
+                 "rng": capture_rng_state({"replay": replay.generator})}
+        save_checkpoint(checkpoint_path, state, meta=meta)
+
+    if cfg.resume:
+        checkpoint = load_checkpoint(checkpoint_path, expect={k: meta[k] for k in ("kind", "agent", "preset", "task")},
+                                     map_location=device)
+        agent.load_state_dict(checkpoint.state["agent"])
+        agent.load_training_state(checkpoint.state["training"])
+        replay.loads(out_dir / "replay")
+        counters.update(checkpoint.state["counters"])
+        curve.extend(checkpoint.state["curve"])
+        recent.extend(checkpoint.state["recent"])
+        start -= float(checkpoint.state["wall_s"])
+        unwrap(env).episode_index = counters["episodes"]
+        log.info(f"resumed {out_dir} at {counters['episodes']} episodes, {agent.updates} updates")
+    else:
+        log.info(f"{agent.name} agent on {task}: seeding replay with {s.expert_episodes} expert episodes")
+        for episode in expert_episodes(cfg):
+            replay.extend_episode(episode.to(device), expert=True)
+        for _ in range(int(s.pretrain_updates)):
+            agent.pretrain_update(replay.sample())
+        evaluate(int(s.eval_episodes))
+
+    collector = Collector(env, agent.policy, frames_per_batch=1, total_frames=-1, device=device,
+                          auto_register_policy_transforms=False)
+    if cfg.resume:  # after the collector's first reset and policy probe, as in the uninterrupted run
+        restore_rng_state(checkpoint.state["rng"], {"replay": replay.generator})
+    next_eval = (agent.updates // int(s.eval_every) + 1) * int(s.eval_every)
+    next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
+    with StopSignals() as stop:
+        for data in collector:
+            step = data[0].select(*TRANSITION_KEYS)
+            steps.append(step)
+            counters["env_steps"] += 1
+            episode_over = bool(step["next", "done"])
+            if episode_over:
+                replay.extend_episode(torch.stack(steps))
+                steps.clear()
+                counters["episodes"] += 1
+                recent.append(float(bool(step["next", "terminated"]) and float(step["next", "reward"]) > 0))
+            for _ in range(int(s.updates_per_step)):
+                batch = replay.sample()
+                metrics = agent.update(batch)
+                replay.update_priority(batch["index"], batch["td_error"])
+                replay.beta = float(beta(agent.updates))
+            if logger is not None and counters["env_steps"] % 10 == 0:
+                wall = time.perf_counter() - start
+                for key, value in {**metrics, **agent.learning_rates(), **agent.planner.hyperparameters(),
+                                   "train/success_last100": sum(recent) / max(1, len(recent)),
+                                   "env_steps_per_s": counters["env_steps"] / wall, "updates_per_s": agent.updates / wall}.items():
+                    logger.log_scalar(key, value, step=agent.updates)
+            if agent.updates >= next_eval:
+                evaluate(int(s.eval_episodes))
+                next_eval += int(s.eval_every)
+            if not episode_over:
+                continue
+            wall_over = s.max_wall_clock_s is not None and time.perf_counter() - start >= float(s.max_wall_clock_s)
+            finished = counters["episodes"] >= int(s.total_episodes) or wall_over
+            if agent.updates >= next_checkpoint or stop.requested or finished:
+                save()
+                next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
+            if stop.requested:
+                collector.shutdown()
+                raise RunStopped(stop.signal_name, counters["episodes"], int(s.total_episodes), checkpoint_path)
+            if finished:
+                break
+    collector.shutdown()
+    final = evaluate(int(s.final_eval_episodes))
+    summary = {"agent": agent.name, "task": cfg.env.id, "num_objects": int(cfg.env.num_objects), "seed": int(cfg.seed),
+               "preset": str(cfg.agent.preset or cfg.model.preset), **{k: final[k] for k in CURVE_FIELDS},
+               "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}
+    atomic_write_text(out_dir / "final_metrics.json", json.dumps(summary, indent=2))
+    log.info(f"done: greedy success {100 * final['success_rate']:.1f}% over {final['eval_episodes']} episodes "
+             f"after {counters['episodes']} episodes / {final['wall_s'] / 60:.1f} min -> {out_dir}")
+    return summary
+
+
+if __name__ == "__main__":
+    sys.argv = check_command_line(__file__, config_name="train_policy", checkpoint_name="checkpoint.pt")
+    main()

@@ -1,0 +1,48 @@
+"""Tiny real networks and transitions for the planner, objective and agent tests."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from ldm_rl.models.q_fcn import build_q_network
+from ldm_rl.models.v_cnn import build_value_network
+from ldm_rl.world_model import build_dynamics_model
+
+MAX_HEIGHT = 0.25
+
+
+def tiny_networks(seed: int = 0):
+    """(q, dynamics, value) with random weights: a lite LDM(64) at width 1/16, Q and V at width 1/8."""
+    torch.manual_seed(seed)
+    dynamics = build_dynamics_model({"name": "ldm", "preset": "lite", "width": 0.0625, "crop_size": 64}, MAX_HEIGHT)
+    q = build_q_network("lite", max_height=MAX_HEIGHT, width=0.125)
+    value = build_value_network("lite", max_height=MAX_HEIGHT, width=0.125)
+    return q, dynamics, value
+
+
+def scenes(batch: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    """``batch`` random block scenes (a few 4 cm cubes of height 4–8 cm), half of them holding an object."""
+    g = torch.Generator().manual_seed(seed)
+    heightmap = torch.zeros(batch, 1, 128, 128)
+    for b in range(batch):
+        for _ in range(3):
+            r, c = torch.randint(20, 100, (2,), generator=g).tolist()
+            heightmap[b, 0, r : r + 13, c : c + 13] = 0.04 * int(torch.randint(1, 3, (1,), generator=g))
+    holding = (torch.arange(batch) % 2 == 1).view(batch, 1)
+    in_hand = torch.where(holding.view(batch, 1, 1, 1), torch.full((batch, 1, 24, 24), 0.04), torch.zeros(batch, 1, 24, 24))
+    return {"heightmap": heightmap, "in_hand": in_hand, "holding": holding}
+
+
+def transitions(batch: int, seed: int = 0, terminated=None) -> TensorDict:
+    """A flat batch of transitions between random scenes (rewards 0/1)."""
+    now, nxt = scenes(batch, seed), scenes(batch, seed + 1)
+    g = torch.Generator().manual_seed(seed + 2)
+    action = torch.stack([torch.randint(16, 112, (batch,), generator=g), torch.randint(16, 112, (batch,), generator=g),
+                          torch.randint(0, 8, (batch,), generator=g)], -1)
+    if terminated is None:
+        terminated = torch.rand(batch, 1, generator=g) < 0.3
+    reward = terminated.float()
+    return TensorDict({**now, "action": action,
+                       "next": {**nxt, "reward": reward, "terminated": terminated, "truncated": torch.zeros_like(terminated),
+                                "done": terminated.clone()}}, batch_size=[batch])

@@ -1,0 +1,302 @@
+"""The agent's networks: Q FCN (rotation convention, exact quarter-turn equivariance, head routing,
+the one-rotation training path) and V CNN (heads, batching); sizes of the paper presets; input checks."""
+
+import math
+
+import pytest
+import torch
+
+from ldm_rl import geometry as g
+from ldm_rl.models.blocks import count_parameters, encode_heights
+from ldm_rl.models.q_fcn import Q_PRESETS, QFCN, build_q_network
+from ldm_rl.models.v_cnn import V_PRESETS, VCNN, build_value_network
+
+MAX_HEIGHT = 0.15
+TINY = 0.125  # width of the networks in the tests that are not about the paper presets
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def tiny_q(num_rotations: int = 8, seed: int = 0) -> QFCN:
+    torch.manual_seed(seed)
+    return build_q_network("lite", max_height=MAX_HEIGHT, num_rotations=num_rotations, width=TINY)
+
+
+def tiny_v(seed: int = 0) -> VCNN:
+    torch.manual_seed(seed)
+    return build_value_network("lite", max_height=MAX_HEIGHT, width=TINY)
+
+
+def states(n: int, seed: int = 0):
+    """Block scenes with off-grid heights (a few above max_height), random in-hand images, holding alternating."""
+    gen = torch.Generator().manual_seed(seed)
+    scenes = torch.rand(n, 1, 128, 128, generator=gen) * 0.02
+    for i in range(n):
+        for _ in range(4):
+            r, c = torch.randint(4, 110, (2,), generator=gen).tolist()
+            h, w = torch.randint(6, 18, (2,), generator=gen).tolist()
+            scenes[i, 0, r : r + h, c : c + w] += 0.04 * int(torch.randint(1, 5, (1,), generator=gen))
+    in_hand = torch.rand(n, 1, 24, 24, generator=gen) * 0.08
+    holding = (torch.arange(n) % 2 == 1).unsqueeze(-1)
+    return scenes, in_hand, holding
+
+
+# --------------------------------------------------------------------------------------------
+# sizes and structure of the paper presets
+# --------------------------------------------------------------------------------------------
+def test_paper_presets_have_the_reference_parameter_counts_and_init():
+    torch.manual_seed(0)
+    q = build_q_network("paper", max_height=MAX_HEIGHT)
+    assert count_parameters(q) == 8_417_110
+    assert count_parameters(q.hand_encoder) == 6_969_892
+    v = build_value_network("paper", max_height=MAX_HEIGHT)
+    assert count_parameters(v) == 24_801_418
+    assert (count_parameters(v.scene_trunk), count_parameters(v.hand_trunk)) == (1_213_760, 296_256)
+    assert count_parameters(v.value_head) == count_parameters(v.reward_head) == 11_645_701
+    for net in (q, v):
+        assert not any(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in net.modules())
+        slopes = {m.negative_slope for m in net.modules() if isinstance(m, torch.nn.LeakyReLU)}
+        assert slopes == {0.01}
+    # Q: xavier_normal_ (std √(2 / (fan_in + fan_out))); V: kaiming_normal_ fan_out (std gain / √fan_out)
+    w = q.up_4.block.conv1.weight
+    assert w.std().item() == pytest.approx(math.sqrt(2 / (256 * 9 + 128 * 9)), rel=0.05)
+    w = v.value_head[0].weight
+    assert w.std().item() == pytest.approx(math.sqrt(2 / (1 + 0.01**2)) / math.sqrt(256 * 9), rel=0.05)
+    assert set(Q_PRESETS) == set(V_PRESETS) == {"paper", "lite"}
+    assert count_parameters(build_q_network("lite", max_height=MAX_HEIGHT)) < count_parameters(q) / 3
+    assert count_parameters(build_value_network("lite", max_height=MAX_HEIGHT)) < count_parameters(v) / 3
+
+
+def test_unknown_preset_is_rejected():
+    with pytest.raises(ValueError, match="preset 'huge'"):
+        build_q_network("huge", max_height=MAX_HEIGHT)
+    with pytest.raises(ValueError, match="preset 'huge'"):
+        build_value_network("huge", max_height=MAX_HEIGHT)
+
+
+# --------------------------------------------------------------------------------------------
+# Q: rotation convention and equivariance
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("num_rotations, grad", [(8, False), (8, True), (6, False)])
+def test_q_maps_are_bit_exactly_equivariant_to_quarter_turns(num_rotations, grad):
+    """Scene +90° and bin + R/2 <=> map +90° (and −90° / bin − R/2), bit for bit, both heads."""
+    q = tiny_q(num_rotations)
+    half = num_rotations // 2
+    scene, in_hand, holding = states(4, seed=1)
+    with torch.set_grad_enabled(grad):
+        maps = q(scene, in_hand, holding)
+        plus = q(g.rotate(scene, math.pi / 2), in_hand, holding)
+        minus = q(g.rotate(scene, -math.pi / 2), in_hand, holding)
+    assert torch.equal(plus[:, :half], g.rotate(maps[:, half:], math.pi / 2))
+    assert torch.equal(minus[:, half:], g.rotate(maps[:, :half], -math.pi / 2))
+    # not vacuous: the maps differ between bins, and a quarter turn with the wrong bin shift is not a match
+    assert not torch.allclose(maps[:, 0], maps[:, 1])
+    assert not torch.equal(plus[:, :half], g.rotate(maps[:, :half], math.pi / 2))
+
+
+def _capture(q: QFCN):
+    """Hooks recording the trunk inputs and the pick head's outputs (gripper frames), in batch order."""
+    seen = {"inputs": [], "maps": []}
+    hooks = [
+        q.conv_1.register_forward_pre_hook(lambda _m, args: seen["inputs"].append(args[0].detach())),
+        q.pick_head.register_forward_hook(lambda _m, _a, out: seen["maps"].append(out.detach())),
+    ]
+    return seen, hooks
+
+
+def test_q_bin_k_is_the_gripper_frame_that_crop_sees_at_yaw_k_pi_over_r():
+    """Trunk input of bin k = the scene as ``geometry.rotate(·, θ_k)`` / ``geometry.crop(·, a, θ_k)`` see it;
+    ``Q[k, a]`` = the head's value at the gripper-frame pixel of a."""
+    q, r = tiny_q(), 8
+    scene, in_hand, _ = states(2, seed=2)
+    holding = torch.zeros(2, dtype=torch.bool)
+    seen, hooks = _capture(q)
+    with torch.no_grad():
+        maps = q(scene, in_hand, holding)
+    for h in hooks:
+        h.remove()
+    x = encode_heights(scene, MAX_HEIGHT, 21)
+    inputs = torch.cat(seen["inputs"]).view(2, r, 128, 128)
+    heads = torch.cat(seen["maps"]).view(2, r, 128, 128)
+    thetas = g.rotation_angles(r, dtype=torch.float64)
+    for k in range(r):
+        expected_in = g.rotate(x, thetas[k].item(), mode="nearest")[:, 0]
+        expected_q = g.rotate(heads[:, k : k + 1], -thetas[k].item(), mode="nearest")[:, 0]
+        if k < r // 2:  # no quarter turn: the same samples as geometry.rotate
+            assert torch.equal(inputs[:, k], expected_in) and torch.equal(maps[:, k], expected_q)
+        else:  # quarter turn + residual: the same rotation, up to last-bit ties of the nearest pixel
+            assert (inputs[:, k] == expected_in).float().mean() > 0.99
+            assert (maps[:, k] == expected_q).float().mean() > 0.99
+    # exact at yaw π/2: the trunk pixel p' = (col, 127 − row) of action a = (row, col) sees crop(x, a, π/2)
+    k, d = r // 2, 9
+    for row, col in [(40, 90), (64, 17), (100, 100)]:
+        window = inputs[:, k, col - d // 2 : col + d // 2 + 1, 127 - row - d // 2 : 127 - row + d // 2 + 1]
+        crop = g.crop(x, torch.tensor([row, col]), math.pi / 2, d, mode="nearest")[:, 0]
+        assert torch.equal(window, crop)
+        assert not torch.equal(window, torch.rot90(crop, 2, (-2, -1)))  # the opposite yaw differs
+        assert torch.equal(maps[:, k, row, col], heads[:, k, col, 127 - row])
+
+
+# --------------------------------------------------------------------------------------------
+# Q: routing and the training path
+# --------------------------------------------------------------------------------------------
+def test_q_place_rows_use_the_hand_and_pick_rows_ignore_it():
+    q = tiny_q()
+    scene, in_hand, holding = states(4, seed=3)
+    other_hand = torch.flip(in_hand, (-1,)) + 0.03
+    with torch.no_grad():
+        maps = q(scene, in_hand, holding)
+        maps_other = q(scene, other_hand, holding)
+        as_pick = q(scene, in_hand, torch.zeros_like(holding))
+        alone = torch.cat([q(scene[i : i + 1], in_hand[i : i + 1], holding[i : i + 1]) for i in range(4)])
+    pick, place = ~holding[:, 0], holding[:, 0]
+    assert torch.equal(maps[pick], maps_other[pick])  # pick head: no dependence on the hand image
+    assert not torch.allclose(maps[place], maps_other[place])  # place head: conditioned on the hand
+    assert torch.equal(maps[pick], as_pick[pick])
+    assert not torch.allclose(maps[place], as_pick[place])  # holding rows are routed to the other head
+    torch.testing.assert_close(maps, alone, rtol=1e-5, atol=1e-6)  # routing keeps each sample in its row
+
+
+def test_q_action_values_equal_the_maps_and_run_one_rotation_per_sample():
+    q, n = tiny_q(), 10
+    scene, in_hand, holding = states(n, seed=4)
+    gen = torch.Generator().manual_seed(5)
+    action = torch.stack(
+        (torch.randint(0, 128, (n,), generator=gen), torch.randint(0, 128, (n,), generator=gen), torch.arange(n) % 8), -1
+    )
+    action[0] = torch.tensor([0, 0, 2])  # a corner outside the rotated frame: Q reads 0 there
+    with torch.no_grad():
+        maps = q(scene, in_hand, holding)
+    images = []
+    hook = q.conv_1.register_forward_pre_hook(lambda _m, args: images.append(args[0].shape[0]))
+    values = q.action_values(scene, in_hand, holding, action)
+    hook.remove()
+    assert sum(images) == n  # one trunk image per sample, not R
+    expected = maps[torch.arange(n), action[:, 2], action[:, 0], action[:, 1]]
+    assert values.shape == (n,) and values.dtype == torch.float32
+    torch.testing.assert_close(values.detach(), expected, rtol=1e-5, atol=1e-6)
+    assert values[0].item() == 0.0 and expected[0].item() == 0.0
+    assert not torch.allclose(expected, expected[1])  # different actions, different values
+    values.sum().backward()
+    for part in (q.pick_head, q.place_head, q.hand_encoder, q.conv_1):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in part.parameters())
+
+
+def test_raw_and_replay_decoded_heights_give_identical_outputs():
+    q, v = tiny_q(), tiny_v()
+    scene, in_hand, holding = states(2, seed=6)
+    scene[0, 0, :5, :5] = 1.0  # above max_height: clamps to the top class
+    decoded = [g.classes_to_heights(g.heights_to_classes(t, MAX_HEIGHT, 21), MAX_HEIGHT, 21) for t in (scene, in_hand)]
+    assert not torch.equal(decoded[0], scene)
+    with torch.no_grad():
+        assert torch.equal(q(scene, in_hand, holding), q(*decoded, holding))
+        assert torch.equal(v(scene, in_hand), v(*decoded))
+
+
+def test_q_keeps_leading_batch_dims_and_empty_batches():
+    q = tiny_q()
+    scene, in_hand, holding = states(4, seed=7)
+    with torch.no_grad():
+        flat = q(scene, in_hand, holding[:, 0])
+        nested = q(scene.view(2, 2, 1, 128, 128), in_hand.view(2, 2, 1, 24, 24), holding.view(2, 2, 1))
+        empty = q(scene[:0], in_hand[:0], holding[:0])
+    assert flat.shape == (4, 8, 128, 128) and nested.shape == (2, 2, 8, 128, 128) and empty.shape == (0, 8, 128, 128)
+    torch.testing.assert_close(nested.reshape(4, 8, 128, 128), flat, rtol=1e-5, atol=1e-6)
+    action = torch.tensor([[[3, 4, 5], [6, 7, 1]]])
+    assert q.action_values(scene[:2].unsqueeze(0), in_hand[:2].unsqueeze(0), holding[:2].unsqueeze(0), action).shape == (1, 2)
+
+
+# --------------------------------------------------------------------------------------------
+# V
+# --------------------------------------------------------------------------------------------
+def test_v_value_and_reward_heads_share_the_trunk_and_batch_any_way():
+    v = tiny_v()
+    scene, in_hand, _ = states(6, seed=8)
+    with torch.no_grad():
+        value = v(scene, in_hand)
+        value2, reward = v.value_and_reward(scene, in_hand)
+        nested = v(scene.view(2, 3, 1, 128, 128), in_hand.view(2, 3, 1, 24, 24))
+        other_hand = v(scene, in_hand.flip(-2) + 0.03)
+        v.CHUNK = 4  # chunked inference gives the same values as one pass
+        chunked = v(scene, in_hand)
+    assert value.shape == reward.shape == (6, 1) and nested.shape == (2, 3, 1)
+    assert torch.equal(value, value2)
+    assert not torch.allclose(value, reward)  # separate heads
+    assert not torch.allclose(value, other_hand)  # the in-hand image matters
+    torch.testing.assert_close(nested.reshape(6, 1), value, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(chunked, value, rtol=1e-5, atol=1e-6)
+    value, reward = v.value_and_reward(scene, in_hand)
+    (value.sum() + reward.sum()).backward()
+    assert all(p.grad is not None for p in v.parameters())
+
+
+# --------------------------------------------------------------------------------------------
+# input validation
+# --------------------------------------------------------------------------------------------
+GOOD = {
+    "heightmap": torch.zeros(2, 1, 128, 128),
+    "in_hand": torch.zeros(2, 1, 24, 24),
+    "holding": torch.zeros(2, 1, dtype=torch.bool),
+    "action": torch.tensor([[1, 2, 0], [3, 4, 7]]),
+}
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("heightmap", torch.zeros(2, 1, 64, 64), r"heightmap must be \[\*B, 1, 128, 128\]"),
+        ("heightmap", torch.zeros(2, 1, 128, 128, dtype=torch.uint8), "heightmap.*dtype torch.uint8"),
+        ("heightmap", torch.full((2, 1, 128, 128), float("nan")), "heightmap must be finite"),
+        ("in_hand", torch.zeros(3, 1, 24, 24), "in_hand must have batch shape"),
+        ("in_hand", torch.full((2, 1, 24, 24), float("inf")), "in_hand must be finite"),
+        ("holding", torch.zeros(2, 1), "holding must be bool"),
+        ("holding", torch.zeros(2, 2, dtype=torch.bool), "holding must be bool.*shape"),
+        ("action", torch.tensor([[1.0, 2.0, 0.0], [1.0, 2.0, 0.0]]), "action must be an integer"),
+        ("action", torch.tensor([1, 2, 0]), "action must be an integer"),
+        ("action", torch.tensor([[1, 2, 8], [1, 2, 0]]), r"rot in \[0, 8\)"),
+        ("action", torch.tensor([[1, 128, 0], [1, 2, 0]]), r"row, col in \[0, 128\)"),
+    ],
+)
+def test_q_rejects_bad_inputs_with_one_line_messages(field, value, message):
+    q = tiny_q()
+    inputs = {**GOOD, field: value}
+    with pytest.raises(ValueError, match=message) as info:
+        q.action_values(**inputs)
+    assert "\n" not in str(info.value)
+    if field != "action":
+        with pytest.raises(ValueError, match=message):
+            q(inputs["heightmap"], inputs["in_hand"], inputs["holding"])
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("heightmap", torch.zeros(2, 128, 128), "heightmap must be"),
+        ("in_hand", torch.zeros(2, 1, 24, 24, dtype=torch.int64), "in_hand.*dtype"),
+        ("in_hand", torch.zeros(1, 1, 24, 24), "in_hand must have batch shape"),
+    ],
+)
+def test_v_rejects_bad_inputs(field, value, message):
+    v = tiny_v()
+    inputs = {"heightmap": GOOD["heightmap"], "in_hand": GOOD["in_hand"], field: value}
+    with pytest.raises(ValueError, match=message):
+        v(**inputs)
+    with pytest.raises(ValueError, match=message):
+        v.value_and_reward(**inputs)
+
+
+def test_constructor_arguments_are_checked():
+    with pytest.raises(ValueError, match="max_height"):
+        QFCN(max_height=0.0)
+    with pytest.raises(ValueError, match="num_classes"):
+        VCNN(MAX_HEIGHT, num_classes=1)
+    with pytest.raises(ValueError, match="num_rotations"):
+        QFCN(MAX_HEIGHT, num_rotations=0)
+    with pytest.raises(ValueError, match="width"):
+        VCNN(MAX_HEIGHT, width=-1.0)

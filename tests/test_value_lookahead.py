@@ -1,0 +1,79 @@
+"""LookaheadLoss: batched targets equal per-sample ones, terminal rows, target networks, gradients."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torchrl.objectives import HardUpdate
+
+from ldm_rl.objectives import LookaheadLoss
+from policy_helpers import tiny_networks, transitions
+
+
+def make_loss(seed=0, **kwargs):
+    q, dynamics, value = tiny_networks(seed)
+    return LookaheadLoss(q, value, dynamics, **{"gamma": 0.9, "num_target_candidates": 3, "chunk_size": 5, **kwargs})
+
+
+def test_batched_targets_equal_per_sample_targets():
+    loss = make_loss()
+    batch = transitions(6, terminated=torch.tensor([[False], [True], [False], [False], [True], [False]]))
+    q_all, v_all = loss.targets(batch)
+    rows = [loss.targets(batch[i : i + 1]) for i in range(6)]
+    torch.testing.assert_close(q_all, torch.cat([r[0] for r in rows]))
+    torch.testing.assert_close(v_all, torch.cat([r[1] for r in rows]))
+
+
+def test_terminal_targets_are_the_reward_and_live_ones_bootstrap():
+    loss = make_loss()
+    batch = transitions(4, terminated=torch.tensor([[True], [True], [False], [False]]))
+    q_t, v_t = loss.targets(batch)
+    reward = batch["next", "reward"]
+    assert torch.equal(q_t[:2], reward[:2]) and torch.equal(v_t[:2], reward[:2])
+    q, dynamics, value = loss.q_network, loss.dynamics, loss.value_network
+    with torch.no_grad(), loss.target_networks():
+        q_map = q.eval()(batch["next", "heightmap"][2:], batch["next", "in_hand"][2:], batch["next", "holding"][2:])
+    torch.testing.assert_close(q_t[2:], reward[2:] + 0.9 * q_map.flatten(1).amax(1, keepdim=True))
+
+
+def test_forward_trains_q_and_v_but_not_the_ldm_and_writes_priorities():
+    loss = make_loss()
+    batch = transitions(5)
+    out = loss(batch)
+    total = out["loss_q"] + out["loss_value"] + out["loss_reward"]
+    total.backward()
+    assert batch["td_error"].shape == (5,) and (batch["td_error"] >= 0).all()
+    assert all(p.grad is not None for p in loss.q_network.parameters())
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.value_network.parameters())
+    assert all(p.grad is None for p in loss.dynamics.parameters())
+
+
+def test_target_networks_lag_until_the_hard_update():
+    loss = make_loss()
+    updater = HardUpdate(loss, value_network_update_interval=1)  # copies every 2nd step()
+    batch = transitions(4, terminated=torch.zeros(4, 1, dtype=torch.bool))
+    before = loss.targets(batch)[1]
+    with torch.no_grad():
+        for p in loss.value_network.parameters():
+            p.add_(0.05)
+    assert torch.equal(loss.targets(batch)[1], before)  # the target copy did not move
+    updater.step()
+    assert torch.equal(loss.targets(batch)[1], before)
+    updater.step()
+    assert not torch.equal(loss.targets(batch)[1], before)
+
+
+def test_importance_weights_scale_the_losses():
+    loss = make_loss()
+    batch = transitions(4)
+    plain = loss(batch.clone())["loss_q"]
+    batch["priority_weight"] = torch.full((4,), 0.5)
+    torch.testing.assert_close(loss(batch)["loss_q"], 0.5 * plain)
+
+
+def test_bad_input():
+    loss = make_loss()
+    with pytest.raises(ValueError, match="missing keys"):
+        loss(transitions(2).exclude(("next", "reward")))
+    with pytest.raises(ValueError, match="gamma"):
+        make_loss(gamma=1.5)
