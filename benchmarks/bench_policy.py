@@ -64,7 +64,7 @@ def build(preset: str, num_candidates: int, num_target_candidates: int):
     q = build_q_network(preset, max_height=MAX_HEIGHT)
     value = build_value_network(preset, max_height=MAX_HEIGHT)
     planner = LookaheadPlanner(q, dynamics, value, num_candidates=num_candidates, tau=0.05, write_action_value=False)
-    loss = LookaheadLoss(q, value, dynamics, num_target_candidates=num_target_candidates)
+    loss = LookaheadLoss(q, dynamics, value, num_target_candidates=num_target_candidates)
     ldm_loss = LDMLoss(dynamics, write_logits=True)
     optims = [torch.optim.Adam(m.parameters(), lr=1e-4) for m in (q, value, dynamics)]
     return planner, loss, ldm_loss, optims

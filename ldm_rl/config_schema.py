@@ -265,7 +265,17 @@ class DynamicsConfig:
 
 
 @dataclass
-class Config:
+class RunSettings:
+    """The keys every recipe's primary config has at its top level."""
+
+    seed: int = spec(0, ge=0, doc="seed of every RNG")
+    device: str = spec("auto", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
+                       doc="torch device")
+    threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads; null = torch's default")
+
+
+@dataclass
+class Config(RunSettings):
     """``conf/config.yaml``: the groups, plus seed / device / threads / resume."""
 
     env: EnvConfig = group(EnvConfig)
@@ -274,10 +284,6 @@ class Config:
     logger: LoggerConfig = group(LoggerConfig)
     demos: DemosConfig = group(DemosConfig)
     dynamics: DynamicsConfig = group(DynamicsConfig)
-    seed: int = spec(0, ge=0, doc="seed of every RNG")
-    device: str = spec("auto", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
-                       doc="torch device")
-    threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads; null = torch's default")
     resume: bool = False
 
     @staticmethod
@@ -409,7 +415,7 @@ class ScheduleConfig:
 
 
 @dataclass
-class TrainPolicyConfig:
+class TrainPolicyConfig(RunSettings):
     """``conf/train_policy.yaml``: the groups, plus seed / device / threads / resume."""
 
     env: EnvConfig = group(EnvConfig)
@@ -420,17 +426,13 @@ class TrainPolicyConfig:
     replay: ReplayConfig = group(ReplayConfig)
     schedule: ScheduleConfig = group(ScheduleConfig)
     logger: LoggerConfig = group(LoggerConfig)
-    seed: int = spec(0, ge=0, doc="seed of every RNG")
-    device: str = spec("cpu", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
-                       doc="torch device")
-    threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads; null = torch's default")
     resume: bool = False
 
     check = Config.check
 
 
 @dataclass
-class EvaluateConfig:
+class EvaluateConfig(RunSettings):
     """``conf/evaluate.yaml``: ``recipes/evaluate.py``."""
 
     checkpoint: str = spec(exists=True, doc="a checkpoint.pt written by recipes/train_policy.py")
@@ -438,10 +440,6 @@ class EvaluateConfig:
     num_objects: Optional[int] = spec(None, ge=1, doc="objects (null = the checkpoint's)")
     max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode (null = 2*objects + 4)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="the preset the checkpoint must hold")
-    seed: int = spec(0, ge=0, doc="seed of the evaluation scenes")
-    device: str = spec("cpu", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
-                       doc="torch device")
-    threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads")
     progress: bool = True
 
 

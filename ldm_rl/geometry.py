@@ -1,7 +1,7 @@
 """SE(2) pixel geometry of the top-down heightmap: the one place for pixels, angles and crops.
 
-Conventions (DESIGN.md §3)
---------------------------
+Conventions (docs/conventions.md)
+---------------------------------
 * Heightmap ``[*B, C, H, W]``; **row ↔ x, column ↔ y**; a pixel is a square cell and its centre is
   ``x = x_min + (row + 0.5)·res``, ``y = y_min + (col + 0.5)·res`` (``res`` = 3.125 mm by default).
 * ``R(θ)`` rotates (row, col) offsets: ``(dr, dc) -> (dr·cosθ − dc·sinθ, dr·sinθ + dc·cosθ)``. Because

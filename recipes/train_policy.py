@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import sys
 import time
 from collections import deque
@@ -123,9 +124,9 @@ def train(cfg: DictConfig) -> dict:
     out_dir = hydra_output_dir()
     clean_stale_temporaries(out_dir)
     checkpoint_path = out_dir / CHECKPOINT_NAME
-    if cfg.resume and not checkpoint_path.exists():
-        raise ValueError(f"resume=true but {checkpoint_path} does not exist; pass the run's folder: "
-                         f"resume=true hydra.run.dir=<outputs/.../run folder>")
+    resuming = bool(cfg.resume) and checkpoint_path.exists()
+    if cfg.resume and not resuming:
+        log.info(f"resume=true: no checkpoint in {out_dir} yet; starting from episode 0")
     s = cfg.schedule
     start = time.perf_counter()
     max_height = float(cfg.env.max_height)
@@ -159,40 +160,48 @@ def train(cfg: DictConfig) -> dict:
         return row
 
     def save() -> None:
-        """At an episode boundary: weights, optimisers, schedules, replay, every RNG, counters, curve."""
-        replay.dumps(out_dir / "replay")
+        """At an episode boundary: weights, optimisers, schedules, replay, every RNG, counters, curve.
+
+        The replay goes to a folder named after the update count, which the checkpoint names; older
+        folders are removed only once the checkpoint is on disk, so a kill between the two writes
+        leaves the previous pair intact."""
+        replay_dir = f"replay-{agent.updates:09d}"
+        replay.dumps(out_dir / replay_dir)
         state = {"agent": agent.state_dict(), "training": agent.training_state(), "counters": dict(counters),
                  "curve": curve, "recent": list(recent), "wall_s": time.perf_counter() - start,
-                 "rng": capture_rng_state({"replay": replay.generator})}
+                 "rng": capture_rng_state({"replay": replay.generator}), "replay_dir": replay_dir}
         save_checkpoint(checkpoint_path, state, meta=meta)
+        for old in out_dir.glob("replay-*"):
+            if old.name != replay_dir:
+                shutil.rmtree(old, ignore_errors=True)
 
-    if cfg.resume:
-        checkpoint = load_checkpoint(checkpoint_path, expect={k: meta[k] for k in ("kind", "agent", "preset", "task")},
-                                     map_location=device)
-        agent.load_state_dict(checkpoint.state["agent"])
-        agent.load_training_state(checkpoint.state["training"])
-        replay.loads(out_dir / "replay")
-        counters.update(checkpoint.state["counters"])
-        curve.extend(checkpoint.state["curve"])
-        recent.extend(checkpoint.state["recent"])
-        start -= float(checkpoint.state["wall_s"])
-        unwrap(env).episode_index = counters["episodes"]
-        log.info(f"resumed {out_dir} at {counters['episodes']} episodes, {agent.updates} updates")
-    else:
-        log.info(f"{agent.name} agent on {task}: seeding replay with {s.expert_episodes} expert episodes")
-        for episode in expert_episodes(cfg):
-            replay.extend_episode(episode.to(device), expert=True)
-        for _ in range(int(s.pretrain_updates)):
-            agent.pretrain_update(replay.sample())
-        evaluate(int(s.eval_episodes))
+    with StopSignals() as stop:  # from here on SIGINT/SIGTERM stop at the next episode end, with a checkpoint
+        if resuming:
+            checkpoint = load_checkpoint(checkpoint_path, expect={k: meta[k] for k in ("kind", "agent", "preset", "task")},
+                                         map_location=device)
+            agent.load_state_dict(checkpoint.state["agent"])
+            agent.load_training_state(checkpoint.state["training"])
+            replay.loads(out_dir / checkpoint.state["replay_dir"])
+            counters.update(checkpoint.state["counters"])
+            curve.extend(checkpoint.state["curve"])
+            recent.extend(checkpoint.state["recent"])
+            start -= float(checkpoint.state["wall_s"])
+            unwrap(env).episode_index = counters["episodes"]
+            log.info(f"resumed {out_dir} at {counters['episodes']} episodes, {agent.updates} updates")
+        else:
+            log.info(f"{agent.name} agent on {task}: seeding replay with {s.expert_episodes} expert episodes")
+            for episode in expert_episodes(cfg):
+                replay.extend_episode(episode.to(device), expert=True)
+            for _ in range(int(s.pretrain_updates)):
+                agent.pretrain_update(replay.sample())
+            evaluate(int(s.eval_episodes))
 
-    collector = Collector(env, agent.policy, frames_per_batch=1, total_frames=-1, device=device,
-                          auto_register_policy_transforms=False)
-    if cfg.resume:  # after the collector's first reset and policy probe, as in the uninterrupted run
-        restore_rng_state(checkpoint.state["rng"], {"replay": replay.generator})
-    next_eval = (agent.updates // int(s.eval_every) + 1) * int(s.eval_every)
-    next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
-    with StopSignals() as stop:
+        collector = Collector(env, agent.policy, frames_per_batch=1, total_frames=-1, device=device,
+                              auto_register_policy_transforms=False)
+        if resuming:  # after the collector's first reset and policy probe, as in the uninterrupted run
+            restore_rng_state(checkpoint.state["rng"], {"replay": replay.generator})
+        next_eval = (agent.updates // int(s.eval_every) + 1) * int(s.eval_every)
+        next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
         for data in collector:
             step = data[0].select(*TRANSITION_KEYS)
             steps.append(step)

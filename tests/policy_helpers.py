@@ -7,6 +7,7 @@ from tensordict import TensorDict
 
 from ldm_rl.models.q_fcn import build_q_network
 from ldm_rl.models.v_cnn import build_value_network
+from dyn_helpers import block_scenes
 from ldm_rl.world_model import build_dynamics_model
 
 MAX_HEIGHT = 0.25
@@ -22,13 +23,8 @@ def tiny_networks(seed: int = 0):
 
 
 def scenes(batch: int, seed: int = 0) -> dict[str, torch.Tensor]:
-    """``batch`` random block scenes (a few 4 cm cubes of height 4–8 cm), half of them holding an object."""
-    g = torch.Generator().manual_seed(seed)
-    heightmap = torch.zeros(batch, 1, 128, 128)
-    for b in range(batch):
-        for _ in range(3):
-            r, c = torch.randint(20, 100, (2,), generator=g).tolist()
-            heightmap[b, 0, r : r + 13, c : c + 13] = 0.04 * int(torch.randint(1, 3, (1,), generator=g))
+    """``batch`` random block scenes (``dyn_helpers.block_scenes``), every second one holding an object."""
+    heightmap = block_scenes(batch, seed)
     holding = (torch.arange(batch) % 2 == 1).view(batch, 1)
     in_hand = torch.where(holding.view(batch, 1, 1, 1), torch.full((batch, 1, 24, 24), 0.04), torch.zeros(batch, 1, 24, 24))
     return {"heightmap": heightmap, "in_hand": in_hand, "holding": holding}

@@ -185,8 +185,9 @@ def test_the_command_line_check_imports_no_torch():
     (["loss.class_weights=[1,2]"], "loss.class_weights has 2 entries: must have model.num_depth_classes=21"),
     (["device=gpu0"], "device='gpu0' is invalid: must be auto, cpu, cuda, cuda:N or mps"),
     (["logger.backend=wandb"], "logger.backend='wandb' is invalid: must be one of 'csv', 'tensorboard', 'none'"),
-    (["dynamics.val_fraction=1.5", "threads=0"], "dynamics.val_fraction=1.5 is out of range: must be in (0, 1) (held-out "
-                                                   "fraction); threads=0 is out of range: must be in [1, 1024]"),
+    (["dynamics.val_fraction=1.5", "threads=0"], "threads=0 is out of range: must be in [1, 1024] (torch intra-op threads; "
+                                                   "null = torch's default); dynamics.val_fraction=1.5 is out of range: "
+                                                   "must be in (0, 1) (held-out fraction)"),
     (["demos.num_steps=null"], "demos.num_steps and demos.num_episodes are both null: give exactly one"),
     (["dynamics.autocast=fp8"], "dynamics.autocast='fp8' is invalid: must be one of null, 'bf16'"),
 ])

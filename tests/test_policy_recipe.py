@@ -77,3 +77,58 @@ def test_train_policy_config_composes_every_group():
     assert cfg.agent.name == "ldm" and cfg.planner.num_candidates == 10 and cfg.replay.alpha == 0.6
     assert cfg.schedule.max_wall_clock_s == 6600 and cfg.threads == 1 and cfg.env.num_objects == 3
     assert cfg.agent.num_target_candidates == 3 and cfg.schedule.pretrain_updates == 200
+
+
+@pytest.mark.slow
+def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path):
+    """SIGKILL after the first checkpoint, then resume=true: the same final weights and curve as the
+    uninterrupted run (same seed and threads)."""
+    import signal
+    import time
+
+    import torch
+
+    from ldm_rl.checkpoint import load_checkpoint
+
+    out, _ = smoke_run
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "train_policy.py"), "experiment=smoke",
+                             f"hydra.run.dir={run_dir}"], env=ENV, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600
+    while not (run_dir / "checkpoint.pt").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    assert proc.poll() is None, "the run ended before its first checkpoint"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed = load_checkpoint(run_dir / "checkpoint.pt").state["counters"]["episodes"]
+    resumed = run("train_policy.py", "resume=true", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    a = load_checkpoint(out / "checkpoint.pt").state
+    b = load_checkpoint(run_dir / "checkpoint.pt").state
+    assert killed < a["counters"]["episodes"] == b["counters"]["episodes"]
+    assert a["agent"].keys() == b["agent"].keys()
+    assert all(torch.equal(a["agent"][k], b["agent"][k]) for k in a["agent"])
+    drop = ("wall_s",)
+    assert [{k: v for k, v in r.items() if k not in drop} for r in a["curve"]] == \
+        [{k: v for k, v in r.items() if k not in drop} for r in b["curve"]]
+
+
+@pytest.mark.slow
+def test_sigterm_saves_and_exits_with_one_line(tmp_path):
+    import signal
+    import time
+
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "train_policy.py"), "experiment=smoke",
+                             "schedule.total_episodes=50", f"hydra.run.dir={run_dir}"], env=ENV, cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 600
+    while not (run_dir / "curve.csv").exists() and time.time() < deadline:  # set-up is done
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=600)
+    assert proc.returncode == 143
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("stopped by SIGTERM at iteration") and "resume=true" in last
+    assert (run_dir / "checkpoint.pt").exists() and len(list(run_dir.glob("replay-*"))) == 1

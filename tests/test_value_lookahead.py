@@ -12,7 +12,7 @@ from policy_helpers import tiny_networks, transitions
 
 def make_loss(seed=0, **kwargs):
     q, dynamics, value = tiny_networks(seed)
-    return LookaheadLoss(q, value, dynamics, **{"gamma": 0.9, "num_target_candidates": 3, "chunk_size": 5, **kwargs})
+    return LookaheadLoss(q, dynamics, value, **{"gamma": 0.9, "num_target_candidates": 3, "chunk_size": 5, **kwargs})
 
 
 def test_batched_targets_equal_per_sample_targets():

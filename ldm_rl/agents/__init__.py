@@ -42,7 +42,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"), **common)
     planner = LookaheadPlanner(q_network, dynamics, value_network, **_plain(cfg["planner"]))
     loss = LookaheadLoss(
-        q_network, value_network, dynamics,
+        q_network, dynamics, value_network,
         gamma=float(agent_cfg["gamma"]),
         num_target_candidates=int(agent_cfg["num_target_candidates"]),
         target_proposal=dict(agent_cfg.get("target_proposal") or {}),

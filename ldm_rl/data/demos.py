@@ -1,6 +1,6 @@
 """Expert demonstrations: collect them from the envs, save them exactly, load them back verified.
 
-A demo set is one TensorDict of transitions, batch ``[N]`` (the data contract of DESIGN / the
+A demo set is one TensorDict of transitions, batch ``[N]`` (the data contract of docs/conventions.md / the
 dynamics model), in working dtypes:
 
 ==========================================  ==========================  =====================

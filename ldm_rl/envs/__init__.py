@@ -1,4 +1,4 @@
-"""Headless PyBullet pick-and-place tasks as gymnasium and TorchRL envs (DESIGN §3-4).
+"""Headless PyBullet pick-and-place tasks as gymnasium and TorchRL envs (docs/environments.md).
 
 Importing this package registers the gymnasium ids:
 

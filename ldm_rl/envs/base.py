@@ -8,7 +8,7 @@ primitive is read from the current heightmap (no z in the action):
 * place: the held object's bottom 5 mm above the max of the heightmap within a disk of the held
   object's largest horizontal half extent around the pixel.
 
-Observations (DESIGN §3): ``heightmap`` ``[1, 128, 128] float32`` m in [0, 1] (the camera clips
+Observations (docs/conventions.md): ``heightmap`` ``[1, 128, 128] float32`` m in [0, 1] (the camera clips
 above 1 m), ``in_hand`` ``[1, 24, 24] float32`` m (the pre-pick heightmap cropped at the pick pixel
 in the gripper frame, zeros when empty) and ``holding`` ``MultiBinary(1)`` (int8 0/1; the TorchRL
 env casts it to ``[1] bool``). ``terminated`` on success or an invalid scene, ``truncated`` at

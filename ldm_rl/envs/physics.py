@@ -19,7 +19,7 @@ __all__ = ["PhysicsConfig", "Simulation", "BodyInfo"]
 
 @dataclass(frozen=True)
 class PhysicsConfig:
-    """Physics settings (DESIGN §4, the anchor's 'slow' mode)."""
+    """Physics settings (docs/environments.md; the anchor's 'slow' mode)."""
 
     time_step: float = 1.0 / 240.0  # s
     solver_iterations: int = 200

@@ -9,7 +9,7 @@ __all__ = ["make_env", "make_env_from_config", "env_kwargs_from_config", "expert
 
 def make_env(env_id: str, **kwargs):
     """A TorchRL env for ``env_id``: ``GymEnv(categorical_action_encoding=True)`` plus a cast of
-    ``holding`` from int8 ``MultiBinary(1)`` to ``[1] bool`` (DESIGN §3).
+    ``holding`` from int8 ``MultiBinary(1)`` to ``[1] bool`` (docs/conventions.md).
 
     The action is ``MultiCategorical([128, 128, R])`` int64 ``[3]``; ``kwargs`` go to the task's
     constructor (``num_objects``, ``max_steps``, ``num_rotations``, ``expert_noise``, ...).

@@ -45,9 +45,9 @@ class LookaheadLoss(LossModule):
 
     Args:
         q_network: ``(heightmap, in_hand, holding) -> [B, R, H, W]`` with ``action_values(..., action) -> [B]``.
-        value_network: ``(heightmap, in_hand) -> [B, 1]`` with ``value_and_reward``.
         dynamics: the :class:`~ldm_rl.world_model.DynamicsModel` (only its target copy is used here; the
             LDM's own loss is :class:`~ldm_rl.objectives.LDMLoss`).
+        value_network: ``(heightmap, in_hand) -> [B, 1]`` with ``value_and_reward``.
         gamma: discount γ (γ = 1 is the paper's ``r + max Q̂``; the reference uses 0.95).
         num_target_candidates: N of the target's ``max`` over ``Ā_N(s')``.
         target_proposal: keyword arguments of ``sample_candidates`` for the target proposals
@@ -87,8 +87,8 @@ class LookaheadLoss(LossModule):
     def __init__(
         self,
         q_network: nn.Module,
-        value_network: nn.Module,
         dynamics: nn.Module,
+        value_network: nn.Module,
         *,
         gamma: float = 0.95,
         num_target_candidates: int = 10,

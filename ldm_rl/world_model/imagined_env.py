@@ -33,7 +33,7 @@ class _RewardAndDone(TensorDictModuleBase):
 
 
 class LDMImaginedEnv(ModelBasedEnvBase):
-    """Imagined transitions ``s' = f(s, a)`` with the keys of DESIGN.md §3.
+    """Imagined transitions ``s' = f(s, a)`` with the keys of ``ldm_rl.keys``.
 
     Batch-free (``batch_size == ()``): ``reset(start_td)`` accepts any batch of start states (a
     TensorDict with heightmap, in_hand, holding) and ``rollout(n, policy, tensordict=start,

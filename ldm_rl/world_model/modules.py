@@ -1,4 +1,4 @@
-"""TensorDict wrappers of the dynamics model (keys of DESIGN.md §3)."""
+"""TensorDict wrappers of the dynamics model (keys: ``ldm_rl.keys``)."""
 
 from __future__ import annotations
 
