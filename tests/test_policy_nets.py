@@ -182,6 +182,8 @@ def test_q_action_values_equal_the_maps_and_run_one_rotation_per_sample():
     assert values.shape == (n,) and values.dtype == torch.float32
     torch.testing.assert_close(values.detach(), expected, rtol=1e-5, atol=1e-6)
     assert values[0].item() == 0.0 and expected[0].item() == 0.0
+    with torch.no_grad():  # the inference path (channels_last, one dense hand conv per sample) agrees too
+        torch.testing.assert_close(q.action_values(scene, in_hand, holding, action), expected, rtol=1e-5, atol=1e-6)
     assert not torch.allclose(expected, expected[1])  # different actions, different values
     values.sum().backward()
     for part in (q.pick_head, q.place_head, q.hand_encoder, q.conv_1):

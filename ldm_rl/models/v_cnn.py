@@ -70,7 +70,11 @@ class VCNN(nn.Module):
     def _head(in_channels: int, ch) -> nn.Sequential:
         side = geometry.HEIGHTMAP_SIZE // 32  # 128 → 8 (trunk) → 4 (head conv)
         sizes = [ch(256) * side * side, ch(2048), ch(1028), ch(256)]
-        layers: list[nn.Module] = [nn.Conv2d(in_channels, ch(256), 3, stride=2, padding=1), nn.LeakyReLU(LEAKY_SLOPE), nn.Flatten()]
+        layers: list[nn.Module] = [
+            nn.Conv2d(in_channels, ch(256), 3, stride=2, padding=1),
+            nn.LeakyReLU(LEAKY_SLOPE),
+            nn.Flatten(),
+        ]
         for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
             layers += [nn.Linear(fan_in, fan_out), nn.LeakyReLU(LEAKY_SLOPE)]
         layers.append(nn.Linear(sizes[-1], 1))
