@@ -340,7 +340,7 @@ class PerNetworkDecay:
 class AgentConfig:
     """``conf/agent/*.yaml``: ``ldm_rl.agents.build_agent``."""
 
-    name: str = spec(choices=("ldm",), doc="the agent (ldm_rl.agents.AGENTS)")
+    name: str = spec(choices=("ldm", "fcdqn", "rs", "dynaq"), doc="the agent (ldm_rl.agents.AGENTS)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="Q/V size; null = model.preset")
     q_width: Optional[float] = spec(None, gt=0, le=4, doc="Q channel multiplier override")
     value_width: Optional[float] = spec(None, gt=0, le=4, doc="V channel multiplier override")
@@ -355,6 +355,28 @@ class AgentConfig:
     lr_decay_every: int = spec(ge=1, doc="updates per LR decay step")
     target_update_interval: int = spec(ge=1, doc="updates between target-network copies")
     q_grad_clip: Optional[float] = spec(None, gt=0, doc="element-wise Q gradient clamp")
+    # the baselines' own keys (null unless that agent is chosen; checked below)
+    object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
+    object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
+    imagined_ratio: Optional[float] = spec(None, ge=0, le=16, doc="dynaq: imagined transitions per replayed one")
+    imagined_terminal_reward: Optional[float] = spec(None, gt=0, le=1, doc="dynaq: predicted reward that ends an "
+                                                     "imagined episode")
+
+    # which agent uses which of the keys above
+    BASELINE_KEYS = {"rs": ("object_height_threshold", "object_dilation"),
+                     "dynaq": ("imagined_ratio", "imagined_terminal_reward")}
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        found = []
+        for agent, names in AgentConfig.BASELINE_KEYS.items():
+            for key in names:
+                if node.name == agent and node[key] is None:
+                    found.append(f"{prefix}{key} is null: agent={agent} needs it (conf/agent/{agent}.yaml)")
+                elif node.name != agent and node[key] is not None:
+                    found.append(f"{prefix}{key}={_show(node[key])} is set but only agent={agent} uses it "
+                                 f"(agent.name={node.name})")
+        return found
 
 
 @dataclass

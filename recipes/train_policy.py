@@ -131,7 +131,7 @@ def train(cfg: DictConfig) -> dict:
     start = time.perf_counter()
     max_height = float(cfg.env.max_height)
     agent = build_agent(cfg, max_height).to(device)
-    replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=agent.planner.dynamics.num_classes,
+    replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=int(cfg.model.num_depth_classes),
                          batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),
                          priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus),
                          scratch_dir=cfg.replay.scratch_dir)

@@ -67,7 +67,7 @@ def test_unknown_agent_is_one_clear_error():
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose(config_name="train_policy", overrides=["experiment=smoke"])
     cfg.agent.name = "alphazero"
-    with pytest.raises(ValueError, match=r"agent.name must be one of \['ldm'\], got 'alphazero'"):
+    with pytest.raises(ValueError, match=r"agent.name must be one of \['dynaq', 'fcdqn', 'ldm', 'rs'\], got 'alphazero'"):
         build_agent(cfg, 0.25)
 
 

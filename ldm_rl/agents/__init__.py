@@ -1,14 +1,15 @@
 """Agents: the one place where the policy, its losses and its optimizers are put together.
 
-``AGENTS`` maps ``cfg.agent.name`` to a builder ``(cfg, max_height) -> Agent``; the baselines plug in
-here (``agent=fcdqn|rs|dynaq``) and ``recipes/train_policy.py`` runs any of them.
+``AGENTS`` maps ``cfg.agent.name`` to a builder ``(cfg, max_height) -> Agent``: the paper's agent
+(``ldm``) and the baselines (``fcdqn``, ``rs``, ``dynaq``); ``recipes/train_policy.py`` runs any of them.
 """
 
 from __future__ import annotations
 
 from typing import Any, Callable, Mapping
 
-__all__ = ["AGENTS", "build_agent", "build_ldm_agent", "load_agent"]
+__all__ = ["AGENTS", "build_agent", "build_ldm_agent", "build_fcdqn_agent", "build_rs_agent", "build_dynaq_agent",
+           "load_agent"]
 
 
 def _plain(node) -> dict:
@@ -64,7 +65,105 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     )
 
 
-AGENTS: dict[str, Callable] = {"ldm": build_ldm_agent}
+def _required(agent_cfg: Mapping[str, Any], name: str, *keys: str) -> list:
+    """The values of baseline-specific ``agent`` keys, each of which must be set (one clear error otherwise)."""
+    missing = [key for key in keys if agent_cfg.get(key) is None]
+    if missing:
+        raise ValueError(f"agent={name} needs {', '.join('agent.' + key for key in missing)} (null or absent); "
+                         f"see conf/agent/{name}.yaml")
+    return [agent_cfg[key] for key in keys]
+
+
+def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
+    """The Q FCN of ``cfg.agent`` (preset, q_width) on the input quantisation of ``cfg.model``."""
+    from ldm_rl.models.q_fcn import build_q_network
+
+    preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
+    model = cfg["model"]
+    return build_q_network(preset, max_height=float(max_height), num_classes=int(model.get("num_depth_classes", 21)),
+                           num_rotations=int(model.get("num_rotations", 8)), width=agent_cfg.get("q_width"))
+
+
+def _model_and_value(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
+    """(LDM, its focal loss writing the frame logits, V CNN with its reward head) from ``cfg``."""
+    import torch
+
+    from ldm_rl.models.v_cnn import build_value_network
+    from ldm_rl.objectives import LDMLoss
+    from ldm_rl.world_model import build_dynamics_model
+
+    dynamics = build_dynamics_model(cfg["model"], max_height)
+    preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
+    value_network = build_value_network(preset, max_height=float(max_height), num_classes=dynamics.num_classes,
+                                        width=agent_cfg.get("value_width"))
+    loss_cfg = _plain(cfg["loss"])
+    class_weights = loss_cfg.get("class_weights")
+    if class_weights is not None and not isinstance(class_weights, str):
+        class_weights = torch.tensor(list(class_weights), dtype=torch.float32)
+    dynamics_loss = LDMLoss(dynamics, gamma=float(loss_cfg.get("gamma", 2.0)), class_weights=class_weights,
+                            label_smoothing=float(loss_cfg.get("label_smoothing", 0.0)), write_logits=True)
+    return dynamics, dynamics_loss, value_network
+
+
+def _optimisation(agent_cfg: dict) -> dict:
+    return {"lr": dict(agent_cfg["lr"]), "weight_decay": dict(agent_cfg.get("weight_decay") or {}),
+            "lr_decay": float(agent_cfg["lr_decay"]), "lr_decay_every": int(agent_cfg["lr_decay_every"]),
+            "target_update_interval": int(agent_cfg["target_update_interval"])}
+
+
+def build_fcdqn_agent(cfg: Mapping[str, Any], max_height: float):
+    """FC-DQN (``ldm_rl.agents.fc_dqn``): the Q FCN of ``cfg.agent``, exploring by softmax(Q/τ) with the
+    proposal temperature ``cfg.planner.tau``; ``cfg.model`` gives only the input quantisation."""
+    from ldm_rl.agents.fc_dqn import FCDQNAgent, QMapPolicy, SpatialDQNLoss
+
+    agent_cfg = _plain(cfg["agent"])
+    q_network = _q_network(cfg, agent_cfg, max_height)
+    policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
+    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]))
+    return FCDQNAgent(policy, loss, q_grad_clip=agent_cfg.get("q_grad_clip"), **_optimisation(agent_cfg))
+
+
+def build_rs_agent(cfg: Mapping[str, Any], max_height: float):
+    """Random Shooting (``ldm_rl.agents.random_shooting``): ``cfg.planner.num_candidates`` near-object
+    candidates (``agent.object_height_threshold``, ``agent.object_dilation``) scored by R + γV through the
+    LDM of ``cfg.model``; no Q network is built."""
+    from ldm_rl.agents.random_shooting import RandomShootingAgent, RandomShootingLoss, RandomShootingPlanner
+
+    agent_cfg = _plain(cfg["agent"])
+    height, dilation = _required(agent_cfg, "rs", "object_height_threshold", "object_dilation")
+    dynamics, dynamics_loss, value_network = _model_and_value(cfg, agent_cfg, max_height)
+    planner_cfg = _plain(cfg["planner"])
+    gamma, rule = float(agent_cfg["gamma"]), {"height_threshold": float(height), "dilation": int(dilation)}
+    planner = RandomShootingPlanner(dynamics, value_network, num_candidates=int(planner_cfg["num_candidates"]),
+                                    gamma=gamma, tau_value=planner_cfg["tau_value"],
+                                    chunk_size=int(planner_cfg.get("chunk_size", 64)), **rule)
+    loss = RandomShootingLoss(dynamics, value_network, gamma=gamma,
+                              num_target_candidates=int(agent_cfg["num_target_candidates"]),
+                              value_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),
+                              chunk_size=int(agent_cfg.get("chunk_size", 64)), **rule)
+    return RandomShootingAgent(planner, loss, dynamics_loss, **_optimisation(agent_cfg))
+
+
+def build_dynaq_agent(cfg: Mapping[str, Any], max_height: float):
+    """Dyna-Q (``ldm_rl.agents.dyna_q``): FC-DQN plus ``agent.imagined_ratio`` transitions per replayed one
+    imagined by the LDM of ``cfg.model`` with rewards from the V CNN's reward head."""
+    from ldm_rl.agents.dyna_q import DynaQAgent
+    from ldm_rl.agents.fc_dqn import QMapPolicy, SpatialDQNLoss
+
+    agent_cfg = _plain(cfg["agent"])
+    ratio, terminal = _required(agent_cfg, "dynaq", "imagined_ratio", "imagined_terminal_reward")
+    q_network = _q_network(cfg, agent_cfg, max_height)
+    _, dynamics_loss, value_network = _model_and_value(cfg, agent_cfg, max_height)
+    policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
+    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]))
+    return DynaQAgent(policy, loss, dynamics_loss, value_network, imagined_ratio=float(ratio),
+                      terminal_reward=float(terminal),
+                      reward_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),
+                      q_grad_clip=agent_cfg.get("q_grad_clip"), **_optimisation(agent_cfg))
+
+
+AGENTS: dict[str, Callable] = {"ldm": build_ldm_agent, "fcdqn": build_fcdqn_agent, "rs": build_rs_agent,
+                               "dynaq": build_dynaq_agent}
 
 
 def build_agent(cfg: Mapping[str, Any], max_height: float):
