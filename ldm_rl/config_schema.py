@@ -27,7 +27,7 @@ import sys
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional
+from typing import Any, Callable, List, Mapping, Optional
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
@@ -355,6 +355,7 @@ class AgentConfig:
     lr_decay_every: int = spec(ge=1, doc="updates per LR decay step")
     target_update_interval: int = spec(ge=1, doc="updates between target-network copies")
     q_grad_clip: Optional[float] = spec(None, gt=0, doc="element-wise Q gradient clamp")
+    target_range: Optional[List[float]] = None
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -376,6 +377,9 @@ class AgentConfig:
                 elif node.name != agent and node[key] is not None:
                     found.append(f"{prefix}{key}={_show(node[key])} is set but only agent={agent} uses it "
                                  f"(agent.name={node.name})")
+        bounds = node.target_range
+        if bounds is not None and not (len(bounds) == 2 and bounds[0] < bounds[1]):
+            found.append(f"{prefix}target_range={_show(bounds)}: must be null or [low, high] with low < high")
         return found
 
 

@@ -77,3 +77,14 @@ def test_bad_input():
         loss(transitions(2).exclude(("next", "reward")))
     with pytest.raises(ValueError, match="gamma"):
         make_loss(gamma=1.5)
+
+
+def test_targets_are_clamped_into_the_return_range():
+    loss = make_loss(target_range=(0.0, 0.05))
+    batch = transitions(6)
+    q_t, v_t = loss.targets(batch)
+    assert (q_t <= 0.05).all() and (v_t <= 0.05).all() and (q_t >= 0).all()
+    free = make_loss()
+    assert (free.targets(batch)[1] > 0.05).any()  # the clamp is what bounded them
+    with pytest.raises(ValueError, match="target_range"):
+        make_loss(target_range=(1.0, 0.0))

@@ -49,6 +49,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         target_proposal=dict(agent_cfg.get("target_proposal") or {}),
         value_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),
         chunk_size=int(agent_cfg.get("chunk_size", 64)),
+        target_range=agent_cfg.get("target_range"),
     )
     loss_cfg = _plain(cfg["loss"])
     class_weights = loss_cfg.get("class_weights")

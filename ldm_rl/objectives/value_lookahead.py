@@ -55,6 +55,10 @@ class LookaheadLoss(LossModule):
         value_on_prediction: also fit ``V(f(s, a))`` to ``y_V`` (uses ``next_logits`` from the LDM loss
             when the batch holds them, else one eval-mode prediction).
         chunk_size: state-candidate pairs per LDM/V pass of the targets.
+        target_range: ``(low, high)`` the returns can take, or None; both targets are clamped into it. Every
+            task here rewards only on termination, with a reward in [0, 1], so returns lie in [0, 1]: the
+            clamp stops the max over predicted states (amplified by 1/(1−γ)) from feeding on itself
+            (measured: y_V 0.9 → 3.6 within 200 updates without it).
     """
 
     @dataclass
@@ -95,8 +99,12 @@ class LookaheadLoss(LossModule):
         target_proposal: dict | None = None,
         value_on_prediction: bool = True,
         chunk_size: int = 64,
+        target_range: tuple[float, float] | None = None,
     ) -> None:
         super().__init__()
+        if target_range is not None and not (len(target_range) == 2 and target_range[0] < target_range[1]):
+            raise ValueError(f"target_range must be None or (low, high) with low < high, got {target_range!r}")
+        self.target_range = None if target_range is None else (float(target_range[0]), float(target_range[1]))
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
         if not isinstance(num_target_candidates, int) or num_target_candidates < 1:
@@ -146,7 +154,10 @@ class LookaheadLoss(LossModule):
                                    chunk_size=self.chunk_size).values
             q_next[rows] = q_map.flatten(1).amax(1, keepdim=True)
             v_next[rows] = scores.amax(1, keepdim=True)
-        return reward + self.gamma * q_next, reward + self.gamma * v_next
+        y_q, y_v = reward + self.gamma * q_next, reward + self.gamma * v_next
+        if self.target_range is not None:
+            y_q, y_v = y_q.clamp(*self.target_range), y_v.clamp(*self.target_range)
+        return y_q, y_v
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys.require_keys(tensordict, self.in_keys, type(self).__name__)
