@@ -88,3 +88,9 @@ def test_targets_are_clamped_into_the_return_range():
     assert (free.targets(batch)[1] > 0.05).any()  # the clamp is what bounded them
     with pytest.raises(ValueError, match="target_range"):
         make_loss(target_range=(1.0, 0.0))
+
+
+def test_out_keys_name_what_forward_returns():
+    loss = make_loss()
+    assert set(loss(transitions(3)).keys()) == set(loss.out_keys)
+    assert "LookaheadLoss" in repr(loss)

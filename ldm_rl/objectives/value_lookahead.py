@@ -125,6 +125,10 @@ class LookaheadLoss(LossModule):
         state = [k.heightmap, k.in_hand, k.holding]
         return [*state, k.action, *[(keys.NEXT, key) for key in state], k.reward, k.terminated]
 
+    @property
+    def out_keys(self) -> list[str]:
+        return ["loss_q", "loss_value", "loss_reward", "q_target", "value_target", "state_value", "td_error"]
+
     @contextlib.contextmanager
     def target_networks(self):
         """Within the block ``self.q_network`` / ``value_network`` / ``dynamics`` carry the target weights."""
