@@ -93,11 +93,26 @@ def test_q_maps_are_bit_exactly_equivariant_to_quarter_turns(num_rotations, grad
         maps = q(scene, in_hand, holding)
         plus = q(g.rotate(scene, math.pi / 2), in_hand, holding)
         minus = q(g.rotate(scene, -math.pi / 2), in_hand, holding)
+    # pixels no rotated frame covers read -inf; a finite sentinel lets geometry.rotate carry them exactly
+    maps, plus, minus = (t.nan_to_num(neginf=-1e30) for t in (maps, plus, minus))
     assert torch.equal(plus[:, :half], g.rotate(maps[:, half:], math.pi / 2))
     assert torch.equal(minus[:, half:], g.rotate(maps[:, :half], -math.pi / 2))
     # not vacuous: the maps differ between bins, and a quarter turn with the wrong bin shift is not a match
     assert not torch.allclose(maps[:, 0], maps[:, 1])
     assert not torch.equal(plus[:, :half], g.rotate(maps[:, :half], math.pi / 2))
+
+
+def test_pixels_no_rotated_frame_covers_are_never_proposable():
+    """Near the border at non-quarter bins the trunk saw nothing: Q is -inf there (a max never picks
+    them), finite everywhere at quarter-turn bins and in the image's centre."""
+    q = tiny_q(8)
+    scene, in_hand, holding = states(2, seed=3)
+    with torch.no_grad():
+        maps = q(scene, in_hand, holding)
+    assert torch.isfinite(maps[:, 0]).all() and torch.isfinite(maps[:, 4]).all()
+    assert torch.isneginf(maps[:, 1]).any() and torch.isfinite(maps[:, :, 40:88, 40:88]).all()
+    best = maps.flatten(1).argmax(1)
+    assert torch.isfinite(maps.flatten(1).gather(1, best[:, None])).all()
 
 
 def _capture(q: QFCN):
@@ -122,6 +137,7 @@ def test_q_bin_k_is_the_gripper_frame_that_crop_sees_at_yaw_k_pi_over_r():
     for h in hooks:
         h.remove()
     x = encode_heights(scene, MAX_HEIGHT, 21)
+    maps = maps.masked_fill(maps.isneginf(), 0.0)  # uncovered pixels (-inf) are where geometry.rotate reads 0
     inputs = torch.cat(seen["inputs"]).view(2, r, 128, 128)
     heads = torch.cat(seen["maps"]).view(2, r, 128, 128)
     thetas = g.rotation_angles(r, dtype=torch.float64)
@@ -170,7 +186,7 @@ def test_q_action_values_equal_the_maps_and_run_one_rotation_per_sample():
     action = torch.stack(
         (torch.randint(0, 128, (n,), generator=gen), torch.randint(0, 128, (n,), generator=gen), torch.arange(n) % 8), -1
     )
-    action[0] = torch.tensor([0, 0, 2])  # a corner outside the rotated frame: Q reads 0 there
+    action[0] = torch.tensor([0, 0, 2])  # a corner outside the rotated frame: the map reads -inf, action_values 0
     with torch.no_grad():
         maps = q(scene, in_hand, holding)
     images = []
@@ -179,6 +195,8 @@ def test_q_action_values_equal_the_maps_and_run_one_rotation_per_sample():
     hook.remove()
     assert sum(images) == n  # one trunk image per sample, not R
     expected = maps[torch.arange(n), action[:, 2], action[:, 0], action[:, 1]]
+    assert torch.isneginf(expected[0])
+    expected = expected.masked_fill(expected.isneginf(), 0.0)
     assert values.shape == (n,) and values.dtype == torch.float32
     torch.testing.assert_close(values.detach(), expected, rtol=1e-5, atol=1e-6)
     assert values[0].item() == 0.0 and expected[0].item() == 0.0

@@ -180,9 +180,13 @@ class QFCN(nn.Module):
         return flat.gather(1, self._scene_index.index_select(0, bins)).view(n, 1, h, w)
 
     def _unrotate_maps(self, maps: torch.Tensor) -> torch.Tensor:
-        """``[N, R, H, W]`` maps in the gripper frames -> the scene frame: ``Q[n, k, row, col]``."""
+        """``[N, R, H, W]`` maps in the gripper frames -> the scene frame: ``Q[n, k, row, col]``.
+
+        Pixels that bin k's rotated frame does not cover (near the image border at non-quarter bins) read
+        ``-inf``: the trunk never saw them, so they are never proposed and never win a max (read as 0 they
+        beat every negative learned value and drew every greedy action to the border)."""
         n, r, h, w = maps.shape
-        flat = F.pad(maps.reshape(n, r, h * w), (1, 0))
+        flat = F.pad(maps.reshape(n, r, h * w), (1, 0), value=float("-inf"))
         return flat.gather(2, self._map_index.unsqueeze(0).expand(n, r, h * w)).view(n, r, h, w)
 
     # ------------------------------------------------------------------------------------------
@@ -271,7 +275,8 @@ class QFCN(nn.Module):
             in_hand: ``[*B, 1, 24, 24]`` float metres (read only where holding).
             holding: ``[*B]`` or ``[*B, 1]`` bool; False → pick map, True → place map.
         Returns:
-            ``[*B, R, 128, 128]`` float32; entry ``[..., k, row, col]`` is Q of action (row, col, k).
+            ``[*B, R, 128, 128]`` float32; entry ``[..., k, row, col]`` is Q of action (row, col, k);
+            ``-inf`` where bin k's rotated frame does not cover the pixel (never proposed, never a max).
         """
         batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
         size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
@@ -290,7 +295,8 @@ class QFCN(nn.Module):
 
         Args: as :meth:`forward`, plus ``action`` ``[*B, 3]`` integer (row, col, rotation bin).
         Returns: ``[*B]`` float32, ``forward(...)[..., k, row, col]`` up to float summation order
-        (the trunk runs on other batch sizes, and without channels_last when gradients are on).
+        (the trunk runs on other batch sizes, and without channels_last when gradients are on); an
+        action the rotated frame does not cover (``-inf`` in the map) reads 0, a finite training output.
         """
         batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
         size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
