@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -28,6 +27,7 @@ from torch import nn
 from torchrl.objectives import HardUpdate, LossModule
 
 from ldm_rl import keys
+from ldm_rl.objectives.transition_keys import TransitionKeys
 from ldm_rl.agents.base import Agent
 from ldm_rl.planning.planner import ScheduleLike, as_schedule, is_greedy
 from ldm_rl.planning.sampling import sample_candidates
@@ -130,18 +130,7 @@ class SpatialDQNLoss(LossModule):
     weighted by ``priority_weight`` when present.
     """
 
-    @dataclass
-    class _AcceptedKeys:
-        """Input/output keys; change them with ``loss.set_keys(...)``."""
-
-        heightmap: NestedKey = keys.HEIGHTMAP
-        in_hand: NestedKey = keys.IN_HAND
-        holding: NestedKey = keys.HOLDING
-        action: NestedKey = keys.ACTION
-        reward: NestedKey = (keys.NEXT, keys.REWARD)
-        terminated: NestedKey = (keys.NEXT, keys.TERMINATED)
-        priority: NestedKey = "td_error"
-        priority_weight: NestedKey = "priority_weight"
+    _AcceptedKeys = TransitionKeys
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys

@@ -22,7 +22,6 @@ discounted value of what follows ``s`` (no arrival reward, 0 after a terminal st
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -32,6 +31,7 @@ from torch import nn
 from torchrl.objectives import LossModule
 
 from ldm_rl import keys
+from ldm_rl.objectives.transition_keys import TransitionKeys
 from ldm_rl.agents.fc_dqn import StatePolicy, TargetNetworkAgent
 from ldm_rl.objectives import LDMLoss
 from ldm_rl.planning.lookahead import lookahead
@@ -129,16 +129,7 @@ class RandomShootingLoss(LossModule):
         chunk_size: state-candidate pairs per LDM/V pass of the targets.
     """
 
-    @dataclass
-    class _AcceptedKeys:
-        heightmap: NestedKey = keys.HEIGHTMAP
-        in_hand: NestedKey = keys.IN_HAND
-        holding: NestedKey = keys.HOLDING
-        action: NestedKey = keys.ACTION
-        reward: NestedKey = (keys.NEXT, keys.REWARD)
-        terminated: NestedKey = (keys.NEXT, keys.TERMINATED)
-        priority: NestedKey = "td_error"
-        priority_weight: NestedKey = "priority_weight"
+    _AcceptedKeys = TransitionKeys
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys

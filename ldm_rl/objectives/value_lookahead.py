@@ -33,6 +33,7 @@ from torch import nn
 from torchrl.objectives import LossModule
 
 from ldm_rl import keys
+from ldm_rl.objectives.transition_keys import TransitionKeys
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
 from ldm_rl.runtime import eval_mode
@@ -62,18 +63,10 @@ class LookaheadLoss(LossModule):
     """
 
     @dataclass
-    class _AcceptedKeys:
+    class _AcceptedKeys(TransitionKeys):
         """Input/output keys; change them with ``loss.set_keys(...)``."""
 
-        heightmap: NestedKey = keys.HEIGHTMAP
-        in_hand: NestedKey = keys.IN_HAND
-        holding: NestedKey = keys.HOLDING
-        action: NestedKey = keys.ACTION
-        reward: NestedKey = (keys.NEXT, keys.REWARD)
-        terminated: NestedKey = (keys.NEXT, keys.TERMINATED)
         next_logits: NestedKey = keys.NEXT_LOGITS
-        priority: NestedKey = "td_error"
-        priority_weight: NestedKey = "priority_weight"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
