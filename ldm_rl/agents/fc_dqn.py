@@ -22,12 +22,11 @@ import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.objectives import HardUpdate, LossModule
 
 from ldm_rl import keys
-from ldm_rl.objectives.transition_keys import TransitionKeys
+from ldm_rl.objectives.transition_loss import TransitionLoss
 from ldm_rl.agents.base import Agent
 from ldm_rl.planning.planner import ScheduleLike, as_schedule, is_greedy
 from ldm_rl.planning.sampling import sample_candidates
@@ -117,7 +116,7 @@ class QMapPolicy(StatePolicy):
         return out
 
 
-class SpatialDQNLoss(LossModule):
+class SpatialDQNLoss(TransitionLoss):
     """DQN on a spatial Q map: ``Q(s, a) ← r + γ·(1 − terminated)·max_{a'} Q⁻(s', a')``.
 
     Args:
@@ -130,10 +129,6 @@ class SpatialDQNLoss(LossModule):
     weighted by ``priority_weight`` when present.
     """
 
-    _AcceptedKeys = TransitionKeys
-
-    default_keys = _AcceptedKeys
-    tensor_keys: _AcceptedKeys
 
     q_network: nn.Module
     q_network_params: TensorDictParams
@@ -146,15 +141,6 @@ class SpatialDQNLoss(LossModule):
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
         self.convert_to_functional(q_network, "q_network", create_target_params=True)
         self.gamma = float(gamma)
-
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        k = self.tensor_keys
-        state = [k.heightmap, k.in_hand, k.holding]
-        return [*state, k.action, *[(keys.NEXT, key) for key in state], k.reward, k.terminated]
 
     @torch.no_grad()
     def targets(self, tensordict: TensorDictBase) -> torch.Tensor:

@@ -26,12 +26,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.objectives import LossModule
 
 from ldm_rl import keys
-from ldm_rl.objectives.transition_keys import TransitionKeys
+from ldm_rl.objectives.transition_loss import TransitionLoss
 from ldm_rl.agents.fc_dqn import StatePolicy, TargetNetworkAgent
 from ldm_rl.objectives import LDMLoss
 from ldm_rl.planning.lookahead import lookahead
@@ -116,7 +114,7 @@ class RandomShootingPlanner(StatePolicy):
         return {keys.ACTION: action, keys.CANDIDATE_ACTIONS: candidates, keys.CANDIDATE_VALUES: scores}
 
 
-class RandomShootingLoss(LossModule):
+class RandomShootingLoss(TransitionLoss):
     """V and reward-head losses of the RS agent (see the module docstring for the targets).
 
     Args:
@@ -129,10 +127,6 @@ class RandomShootingLoss(LossModule):
         chunk_size: state-candidate pairs per LDM/V pass of the targets.
     """
 
-    _AcceptedKeys = TransitionKeys
-
-    default_keys = _AcceptedKeys
-    tensor_keys: _AcceptedKeys
 
     value_network: nn.Module
     value_network_params: TensorDictParams
@@ -164,15 +158,6 @@ class RandomShootingLoss(LossModule):
         self.gamma, self.num_target_candidates = float(gamma), num_target_candidates
         self.rule = _CandidateRule(dynamics.num_rotations, height_threshold, dilation)
         self.value_on_prediction, self.chunk_size = bool(value_on_prediction), int(chunk_size)
-
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        k = self.tensor_keys
-        state = [k.heightmap, k.in_hand, k.holding]
-        return [*state, k.action, *[(keys.NEXT, key) for key in state], k.reward, k.terminated]
 
     @torch.no_grad()
     def targets(self, tensordict: TensorDictBase) -> torch.Tensor:

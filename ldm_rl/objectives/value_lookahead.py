@@ -30,10 +30,9 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.objectives import LossModule
 
 from ldm_rl import keys
-from ldm_rl.objectives.transition_keys import TransitionKeys
+from ldm_rl.objectives.transition_loss import TransitionKeys, TransitionLoss
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
 from ldm_rl.runtime import eval_mode
@@ -41,7 +40,7 @@ from ldm_rl.runtime import eval_mode
 __all__ = ["LookaheadLoss"]
 
 
-class LookaheadLoss(LossModule):
+class LookaheadLoss(TransitionLoss):
     """Q loss, V loss (real and predicted next states) and reward-head loss with lookahead targets.
 
     Args:
@@ -108,15 +107,6 @@ class LookaheadLoss(LossModule):
         self.gamma, self.num_target_candidates = float(gamma), num_target_candidates
         self.target_proposal = {"mode": "argmax", "tau": 1.0, "beta": 1.0, "sigma": 2.0, "sigma_rot": 1.0, **(target_proposal or {})}
         self.value_on_prediction, self.chunk_size = bool(value_on_prediction), int(chunk_size)
-
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        k = self.tensor_keys
-        state = [k.heightmap, k.in_hand, k.holding]
-        return [*state, k.action, *[(keys.NEXT, key) for key in state], k.reward, k.terminated]
 
     @property
     def out_keys(self) -> list[str]:
