@@ -15,7 +15,14 @@ key                     shape / dtype                                   meaning
 ``candidate_actions``   ``[*B, N, 3]`` int64                            the planner's N proposals
 ``candidate_values``    ``[*B, N]`` float32                             V(f(s, a)) of each
 ``next_logits``         ``[*B, K, S, S]`` float32                       LDM frame logits
+``pred_heightmap``      as ``heightmap`` (under ``"next"``)             the LDM's foresight of it
+``pred_in_hand``        as ``in_hand`` (under ``"next"``)               the LDM's foresight of it
+``pred_holding``        as ``holding`` (under ``"next"``)               the LDM's foresight of it
 ======================  ==============================================  =========================
+
+The ``pred_*`` keys sit beside the real next state, ``("next", "pred_heightmap")`` next to
+``("next", "heightmap")`` (:data:`FORESIGHT_KEYS`): every LDM wrapper writes there by default, so a
+prediction never overwrites data. ``from ldm_rl import keys`` or ``from ldm_rl import HEIGHTMAP, ...``.
 """
 
 from __future__ import annotations
@@ -25,7 +32,8 @@ from typing import Iterable
 __all__ = [
     "HEIGHTMAP", "IN_HAND", "HOLDING", "ACTION", "REWARD", "DONE", "TERMINATED", "TRUNCATED", "NEXT",
     "ACTION_VALUE", "STATE_VALUE", "CANDIDATE_ACTIONS", "CANDIDATE_VALUES", "NEXT_LOGITS",
-    "PRED_HEIGHTMAP", "PRED_IN_HAND", "PRED_HOLDING", "STATE_KEYS", "next_key", "require_keys",
+    "PRED_HEIGHTMAP", "PRED_IN_HAND", "PRED_HOLDING", "STATE_KEYS", "PRED_KEYS", "FORESIGHT_KEYS", "next_key",
+    "require_keys",
 ]
 
 HEIGHTMAP, IN_HAND, HOLDING, ACTION = "heightmap", "in_hand", "holding", "action"
@@ -34,6 +42,8 @@ ACTION_VALUE, STATE_VALUE = "action_value", "state_value"
 CANDIDATE_ACTIONS, CANDIDATE_VALUES, NEXT_LOGITS = "candidate_actions", "candidate_values", "next_logits"
 PRED_HEIGHTMAP, PRED_IN_HAND, PRED_HOLDING = "pred_heightmap", "pred_in_hand", "pred_holding"
 STATE_KEYS = (HEIGHTMAP, IN_HAND, HOLDING)
+PRED_KEYS = (PRED_HEIGHTMAP, PRED_IN_HAND, PRED_HOLDING)  # the foresight of STATE_KEYS, in the same order
+FORESIGHT_KEYS = tuple((NEXT, key) for key in PRED_KEYS)  # where it is written: beside ("next", heightmap) ...
 
 
 def next_key(key: str) -> tuple[str, str]:
@@ -42,8 +52,15 @@ def next_key(key: str) -> tuple[str, str]:
 
 
 def require_keys(tensordict, keys: Iterable, who: str) -> None:
-    """Raise one ``ValueError`` naming every key of ``keys`` missing from ``tensordict`` (nested keys ok)."""
+    """Check the input of ``who`` (a module, loss or env) before any work; raises one ``ValueError``.
+
+    It names every key of ``keys`` missing from ``tensordict`` (nested keys ok), or says the batch is
+    empty (a ``batch_size`` with a 0 in it: nothing to compute on).
+    """
     present = set(tensordict.keys(include_nested=True))
     missing = [key for key in keys if key not in present]
     if missing:
         raise ValueError(f"{who} input is missing keys {missing}; it has {sorted(map(str, present))}")
+    if 0 in tuple(tensordict.batch_size):
+        raise ValueError(f"{who} got an empty batch (batch_size {list(tensordict.batch_size)}): it needs at least one "
+                         "sample")

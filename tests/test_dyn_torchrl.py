@@ -14,20 +14,33 @@ from ldm_rl.world_model import ForesightTransform, LDMImaginedEnv, make_dynamics
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def test_dynamics_module_writes_the_next_state_keys():
+def test_dynamics_module_writes_the_predicted_keys_beside_the_real_next_state():
     model = tiny_model()
     td = transitions(4)
-    real_next = td["next", "heightmap"].clone()
+    real_next = td["next"].clone()
     module = make_dynamics_module(model)
-    out = module(td.exclude("next"))
+    out = module(td)  # a real transition (a replay sample): its ("next", ...) data must survive
     pred = model.predict(td["heightmap"], td["in_hand"], td["holding"], td["action"])
-    assert torch.equal(out["next", "heightmap"], pred.heightmap)
-    assert torch.equal(out["next", "in_hand"], pred.in_hand)
-    assert out["next", "holding"].shape == (4, 1) and out["next", "holding"].dtype == torch.bool
+    assert torch.equal(out["next", "pred_heightmap"], pred.heightmap)
+    assert torch.equal(out["next", "pred_in_hand"], pred.in_hand)
+    assert out["next", "pred_holding"].shape == (4, 1) and out["next", "pred_holding"].dtype == torch.bool
     assert out["next_logits"].shape == (4, 21, 64, 64)
-    assert not torch.equal(out["next", "heightmap"], real_next)
-    with pytest.raises(KeyError):
+    for key in ("heightmap", "in_hand", "holding"):
+        assert torch.equal(out["next", key], real_next[key]), key
+    assert not torch.equal(out["next", "pred_heightmap"], out["next", "heightmap"])
+    with pytest.raises(KeyError, match="action"):
         module(td.exclude("action"))
+    with pytest.raises(ValueError, match="empty batch"):
+        module(td[:0])
+
+
+def test_dynamics_module_can_write_the_next_state_for_imagined_data():
+    from ldm_rl.world_model.modules import NEXT_KEYS
+
+    model = tiny_model()
+    td = transitions(2).exclude("next")
+    out = make_dynamics_module(model, out_keys=NEXT_KEYS)(td)
+    assert torch.equal(out["next", "heightmap"], model.predict(td["heightmap"], td["in_hand"], td["holding"], td["action"]).heightmap)
 
 
 def test_foresight_transform_on_a_replay_buffer():

@@ -299,4 +299,5 @@ def test_planning_package_import_is_light():
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torchrl', 'tensordict', 'ldm_rl')))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "['ldm_rl', 'ldm_rl.geometry', 'ldm_rl.planning', 'ldm_rl.planning.sampling']"
+    # ldm_rl.keys: the key names the package root exports (plain strings, no imports)
+    assert out.strip() == "['ldm_rl', 'ldm_rl.geometry', 'ldm_rl.keys', 'ldm_rl.planning', 'ldm_rl.planning.sampling']"

@@ -139,4 +139,4 @@ def test_schedules_are_frozen():
 def test_module_imports_neither_torch_nor_the_rest_of_the_package():
     code = "import sys, ldm_rl.schedules; print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'ldm_rl')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "['ldm_rl', 'ldm_rl.schedules']"
+    assert out.strip() == "['ldm_rl', 'ldm_rl.keys', 'ldm_rl.schedules']"  # keys: plain strings, no imports

@@ -119,7 +119,7 @@ def test_dynamics_module_predicts_in_eval_mode():
     out = module(td)
     _assert_untouched(model, before, frozen)
     expected = _eval_prediction(model, td)
-    assert torch.equal(out["next", "heightmap"], expected.heightmap)
+    assert torch.equal(out["next", "pred_heightmap"], expected.heightmap)
     assert torch.equal(out["next_logits"], expected.logits) and not out["next_logits"].requires_grad
 
 

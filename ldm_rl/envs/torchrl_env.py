@@ -2,29 +2,91 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
-__all__ = ["make_env", "make_env_from_config", "env_kwargs_from_config", "expert_policy", "unwrap"]
+__all__ = ["make_env", "make_env_from_config", "env_kwargs_from_config", "expert_policy", "unwrap", "EnvClosedError"]
 
 
-def make_env(env_id: str, **kwargs):
+class EnvClosedError(RuntimeError):
+    """Raised when a closed env is reset, stepped or seeded. ``env.close()`` closes it, and so does a TorchRL
+    collector given the env itself, when it reaches ``total_frames`` or on ``shutdown()``."""
+
+
+def _pick_place_env_class():
+    """``PickPlaceTorchEnv``, defined on first use so that importing this module does not import torchrl."""
+    global PickPlaceTorchEnv
+    if "PickPlaceTorchEnv" in globals():
+        return PickPlaceTorchEnv
+    from torchrl.envs import TransformedEnv
+
+    class PickPlaceTorchEnv(TransformedEnv):
+        """The ``TransformedEnv`` that :func:`make_env` returns: a TorchRL ``TransformedEnv`` that refuses,
+        with :class:`EnvClosedError`, to reset, step or seed once closed (PyBullet would fail with a bare
+        ``TypeError``).
+
+        Being a subclass, wrapping it again (``TransformedEnv(env, t)``) nests quietly instead of
+        TorchRL's auto-unwrap warning; ``env.append_transform(t)`` adds to its own chain.
+        """
+
+        def _check_open(self) -> None:
+            if self.base_env.is_closed:
+                env_id = getattr(self.base_env, "env_name", None) or type(self.base_env).__name__
+                raise EnvClosedError(
+                    f"the {env_id} environment is closed: env.close() or a collector closed it (a collector closes the "
+                    "env it was given at total_frames and on shutdown()); make a new one with ldm_rl.make_env, e.g. "
+                    "one per collector"
+                )
+
+        def _reset(self, tensordict=None, **kwargs):
+            self._check_open()
+            return super()._reset(tensordict, **kwargs)
+
+        def _step(self, tensordict):
+            self._check_open()
+            return super()._step(tensordict)
+
+        def set_seed(self, seed=None, static_seed=False):
+            self._check_open()
+            return super().set_seed(seed, static_seed=static_seed)
+
+    PickPlaceTorchEnv.__qualname__ = "PickPlaceTorchEnv"  # a module-level name (``global``): picklable
+    return PickPlaceTorchEnv
+
+
+def __getattr__(name):
+    if name == "PickPlaceTorchEnv":
+        return _pick_place_env_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def make_env(env_id: str, *, transforms: Iterable = (), **kwargs):
     """A TorchRL env for ``env_id``: ``GymEnv(categorical_action_encoding=True)`` plus a cast of
-    ``holding`` from int8 ``MultiBinary(1)`` to ``[1] bool`` (docs/conventions.md).
+    ``holding`` from int8 ``MultiBinary(1)`` to ``[1] bool`` (docs/conventions.md), then ``transforms``.
 
     The action is ``MultiCategorical([128, 128, R])`` int64 ``[3]``; ``kwargs`` go to the task's
     constructor (``num_objects``, ``max_steps``, ``num_rotations``, ``expert_noise``, ...).
+    ``transforms``: TorchRL transforms appended in order to the env's own chain (no nested
+    ``TransformedEnv``); later ones are added with ``env.append_transform(t)``. The result is a
+    ``TransformedEnv`` (``PickPlaceTorchEnv``) that raises :class:`EnvClosedError` once closed.
     """
     import torch
-    from torchrl.envs import DTypeCastTransform, GymEnv, TransformedEnv
+    from torchrl.envs import DTypeCastTransform, GymEnv
+    from torchrl.envs.transforms import Transform
 
     from ldm_rl.envs import ENV_IDS, register_envs
 
     if env_id not in ENV_IDS:
         raise ValueError(f"env_id must be one of {sorted(ENV_IDS)}, got {env_id!r}")
+    transforms = list(transforms) if not isinstance(transforms, Transform) else [transforms]
+    for t in transforms:
+        if not isinstance(t, Transform):
+            raise ValueError(f"transforms must be torchrl Transform instances, got {type(t).__name__}")
     register_envs()
     base = GymEnv(env_id, categorical_action_encoding=True, **kwargs)
-    cast = DTypeCastTransform(torch.int8, torch.bool, in_keys=["holding"])
-    return TransformedEnv(base, cast)
+    env = _pick_place_env_class()(base, DTypeCastTransform(torch.int8, torch.bool, in_keys=["holding"]))
+    for t in transforms:
+        env.append_transform(t)
+    return env
 
 
 def env_kwargs_from_config(cfg: Mapping[str, Any]) -> tuple[str, dict]:
@@ -48,10 +110,17 @@ def make_env_from_config(cfg: Mapping[str, Any], **overrides):
 
 
 def unwrap(env):
-    """The ``PickPlaceEnv`` inside a TorchRL env built by ``make_env`` (unbatched envs only)."""
-    base = getattr(env, "base_env", env)
-    inner = getattr(base, "_env", None)
-    if inner is None:
+    """The ``PickPlaceEnv`` (gymnasium) inside a TorchRL env built by ``make_env``, however many
+    ``TransformedEnv`` layers wrap it (unbatched envs only): ``unwrap(env).expert_action()``, its poses."""
+    from torchrl.envs import TransformedEnv
+
+    from ldm_rl.envs.base import PickPlaceEnv
+
+    base = env
+    while isinstance(base, TransformedEnv):
+        base = base.base_env
+    inner = getattr(base, "__dict__", {}).get("_env")  # GymEnv keeps the gymnasium env there
+    if inner is None or not isinstance(getattr(inner, "unwrapped", None), PickPlaceEnv):
         raise ValueError(f"env must be a single (unbatched) env from make_env, got {type(env).__name__}")
     return inner.unwrapped
 
@@ -64,6 +133,8 @@ def expert_policy(env, noise=None):
     task = unwrap(env)
 
     def policy(td):
+        if getattr(env, "is_closed", False):
+            raise EnvClosedError("expert_policy: its environment is closed; make a new env and a new expert_policy(env)")
         td.set("action", torch.as_tensor(task.expert_action(noise), dtype=torch.int64))
         return td
 

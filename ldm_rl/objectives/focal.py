@@ -23,14 +23,24 @@ def focal_loss(
     With γ = 0, ε = 0 and no weights this is exactly the cross-entropy.
 
     Args:
-        logits: [N, K, *S] float. target: [N, *S] integer classes in [0, K). weight: [K] or None.
+        logits: [N, K, *S] float, N ≥ 1. target: [N, *S] integer classes in [0, K). weight: [K] or None.
     Returns:
-        [N] float32, mean over the pixels of each sample.
+        [N] float32, mean over the pixels of each sample. Bad shapes, dtypes or classes raise ``ValueError``.
     """
     if gamma < 0 or not 0.0 <= label_smoothing < 1.0:
         raise ValueError(f"need gamma >= 0 and label_smoothing in [0, 1), got {gamma}, {label_smoothing}")
+    if not torch.is_tensor(logits) or logits.dim() < 2 or not logits.is_floating_point() or logits.shape[0] == 0:
+        got = tuple(logits.shape) if torch.is_tensor(logits) else type(logits).__name__
+        raise ValueError(f"logits must be a non-empty [N, K, *S] float tensor, got {got}")
     k = logits.shape[1]
+    if not torch.is_tensor(target) or target.shape != logits.shape[:1] + logits.shape[2:] or target.is_floating_point():
+        got = tuple(target.shape) if torch.is_tensor(target) else type(target).__name__
+        raise ValueError(f"target must be [N, *S] = {list(logits.shape[:1] + logits.shape[2:])} integer classes, got {got}")
+    if weight is not None and (not torch.is_tensor(weight) or weight.shape != (k,)):
+        raise ValueError(f"weight must be a [{k}] tensor (one per class) or None, got {getattr(weight, 'shape', weight)}")
     target = target.long()
+    if target.numel() and (target.min() < 0 or target.max() >= k):
+        raise ValueError(f"target classes must lie in [0, {k}), got [{int(target.min())}, {int(target.max())}]")
     log_p = F.log_softmax(logits.float(), dim=1)
     log_p_t = log_p.gather(1, target.unsqueeze(1)).squeeze(1)
     if gamma == 0 and label_smoothing == 0:

@@ -26,16 +26,20 @@ class LDMLoss(LossModule):
         dynamics: the :class:`DynamicsModel` to train (a child module: ``loss.parameters()`` are its
             parameters).
         gamma: focal exponent, default 2 (0 = weighted cross-entropy, the released code's choice).
-        class_weights: default None (all 1), or a [K] tensor, or ``"auto"``: the reference's rule
-            ``w_c = max(1, ln(0.05·N/n_c))`` from the target class counts accumulated over every batch
-            seen in training mode (buffer ``class_counts``; fixed in eval mode). ``conf/loss/focal.yaml``
-            (the recipes) sets ``"auto"``.
+        class_weights: default ``None`` = uniform (every class weighs 1); or a [K] tensor; or ``"auto"``:
+            the reference's rule ``w_c = max(1, ln(0.05·N/n_c))`` from the target class counts
+            accumulated over every batch seen in training mode (buffer ``class_counts``; fixed in eval
+            mode). The recipes pass ``"auto"`` (``conf/loss/focal.yaml``), as the paper did; pass it too
+            to train as they do.
         label_smoothing: ε of the smoothed target distribution, default 0.
         write_logits: also write the detached frame logits ``[*B, K, S, S]`` into the input under
             ``next_logits`` (the agent derives the predicted next state from them: no second LDM pass).
 
-    Returns a TensorDict with ``loss_dynamics`` (scalar) and diagnostics ``pixel_accuracy`` (argmax ==
-    target over the frame) and ``changed_pixel_accuracy`` (the same over pixels whose class changes).
+    Input: a batch ``[*B]`` (not empty) of transitions with the keys of :attr:`in_keys` (heightmap,
+    in_hand, holding, action, ``("next", "heightmap")``), e.g. a replay-buffer sample; a missing key or an
+    empty batch raises one ``ValueError`` before any work. Returns a TensorDict with ``loss_dynamics``
+    (scalar) and diagnostics ``pixel_accuracy`` (argmax == target over the frame) and
+    ``changed_pixel_accuracy`` (the same over pixels whose class changes).
     """
 
     @dataclass

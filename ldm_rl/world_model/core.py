@@ -71,12 +71,15 @@ def validate_state_action(heightmap, in_hand, holding, action, num_rotations: in
     """Check one state-action batch at the module boundary; returns (batch shape, holding as [*B] bool).
 
     heightmap [*B,1,128,128] float (finite), in_hand [*B,1,24,24] float (finite), holding [*B,1] or [*B]
-    bool/integer in {0,1}, action [*B,3] integer (row, col in 0..127, rot in 0..R−1). Raises ValueError.
+    bool/integer in {0,1}, action [*B,3] integer (row, col in 0..127, rot in 0..R−1); ``*B`` may be () but
+    not empty. Raises ValueError.
     """
     hw = HEIGHTMAP_SIZE
     if not torch.is_tensor(heightmap) or heightmap.dim() < 3 or tuple(heightmap.shape[-3:]) != (1, hw, hw):
         raise _shape_error("heightmap", f"a [*B, 1, {hw}, {hw}] float tensor (metres)", heightmap)
     batch = heightmap.shape[:-3]
+    if 0 in tuple(batch):
+        raise ValueError(f"empty batch: heightmap is {tuple(heightmap.shape)}; need at least one state-action pair")
     if not torch.is_tensor(in_hand) or tuple(in_hand.shape) != (*batch, 1, HAND_SIZE, HAND_SIZE):
         raise _shape_error("in_hand", f"[{', '.join(map(str, batch))}, 1, {HAND_SIZE}, {HAND_SIZE}] (batch of heightmap)", in_hand)
     if not torch.is_tensor(action) or tuple(action.shape) != (*batch, 3):

@@ -1,13 +1,21 @@
-"""``build_dynamics_model(cfg.model, max_height)``: the one place that turns a model config into a model."""
+"""Dynamics models from configs: ``make_dynamics_model("ldm64", task="block_stacking")`` (by name, for
+users) and ``build_dynamics_model(cfg.model, max_height)`` (from a composed config node, for recipes): the
+one place that turns a model config into a model."""
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
 
 from ldm_rl.models.blocks import count_parameters
 from ldm_rl.world_model.core import DynamicsModel, HandStateRule
 
-__all__ = ["PRESET_WIDTHS", "build_dynamics_model", "count_parameters", "load_dynamics_checkpoint"]
+__all__ = ["PRESET_WIDTHS", "CONF_DIR", "make_dynamics_model", "build_dynamics_model", "count_parameters",
+           "load_dynamics_checkpoint"]
+
+# the repository's Hydra configs (conf/ beside the package)
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 # channel multiplier of each preset; ``lite`` reads ``cfg.width`` (default below)
 PRESET_WIDTHS = {"paper": 1.0, "lite": 0.25}
@@ -44,6 +52,91 @@ def build_dynamics_model(cfg: Mapping[str, Any], max_height: float):
         hand_crop_mode=cfg.get("hand_crop_mode", "bilinear"),
         action_sigma=float(cfg.get("action_sigma", 2.0)),
     )
+
+
+def make_dynamics_model(
+    model: str = "ldm64",
+    *,
+    task: str = "block_stacking",
+    preset: str = "lite",
+    overrides: Sequence[str] = (),
+    config_dir: str | os.PathLike | None = None,
+) -> DynamicsModel:
+    """A new (randomly initialised, train-mode) dynamics model for ``task``, configured as the recipes do.
+
+    Composes ``conf/config.yaml`` with ``model=<model> env=<task> model.preset=<preset>`` plus
+    ``overrides`` (Hydra override strings over the whole config, e.g. ``"model.width=0.125"``), checks it
+    like a recipe's command line, and builds ``build_dynamics_model(cfg.model, cfg.env.max_height)``: the
+    task's ``max_height`` (metres of the top depth class) and ``num_rotations`` come from
+    ``conf/env/<task>.yaml``, the network and ``num_depth_classes`` from ``conf/model/<model>.yaml``.
+
+    Args:
+        model: ``"ldm64"`` (LDM on 64 px crops), ``"ldm128"`` or ``"naive"`` (a ``conf/model`` option).
+        task: a ``conf/env`` option (``"block_stacking"``, ``"house_building"``, ``"bottle_arrangement"``,
+            ``"bin_packing"``) or its gymnasium id (``"ldm_rl/BlockStacking-v0"``).
+        preset: ``"lite"`` (channels × ``model.width``, CPU-sized; the configs' default) or ``"paper"``.
+        overrides: more Hydra overrides, e.g. ``["model.width=0.125", "model.hand_rule.center_size=24"]``.
+        config_dir: a folder with the same layout as the repository's ``conf/`` (default: that one).
+
+    The model exposes ``max_height``, ``num_classes`` and ``num_rotations`` for the networks built beside
+    it (``build_q_network(..., max_height=model.max_height, num_classes=model.num_classes)``). Any bad
+    name, override or value raises one ``ValueError``.
+    """
+    cfg = _compose(model, task, preset, overrides, Path(config_dir) if config_dir is not None else CONF_DIR)
+    return build_dynamics_model(cfg.model, float(cfg.env.max_height))
+
+
+def _options(conf: Path, group: str) -> list[str]:
+    return sorted(f.stem for f in (conf / group).glob("*.yaml"))
+
+
+def _env_option(conf: Path, task: str) -> str:
+    """A ``conf/env`` option name from an option name or a gymnasium id."""
+    from omegaconf import OmegaConf
+
+    options = _options(conf, "env")
+    if task in options:
+        return task
+    ids = {str(OmegaConf.load(conf / "env" / f"{name}.yaml").get("id")): name for name in options}
+    if task in ids:
+        return ids[task]
+    raise ValueError(f"task must be one of {options} or their ids {sorted(ids)}, got {task!r}")
+
+
+def _compose(model: str, task: str, preset: str, overrides: Sequence[str], conf: Path):
+    """The composed, checked ``conf/config.yaml`` (no ``hydra`` node) for :func:`make_dynamics_model`."""
+    if not (conf / "config.yaml").is_file():
+        raise ValueError(f"no Hydra configs at {conf} (config.yaml missing): make_dynamics_model reads the repository's "
+                         "conf/; install ldm_rl from its repository (pip install -e .) or pass config_dir=")
+    models = _options(conf, "model")
+    if model not in models:
+        raise ValueError(f"model must be one of {models}, got {model!r}")
+    if preset not in PRESET_WIDTHS:
+        raise ValueError(f"preset must be one of {tuple(PRESET_WIDTHS)}, got {preset!r}")
+    if isinstance(overrides, str) or not all(isinstance(o, str) for o in overrides):
+        raise ValueError(f"overrides must be a list of Hydra override strings like 'model.width=0.125', got {overrides!r}")
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from ldm_rl.config_schema import ConfigError, _omegaconf_line, validate_config  # registers the configs' schema
+
+    composed = [f"model={model}", f"env={_env_option(conf, task)}", f"model.preset={preset}", *overrides]
+    # called inside a Hydra app: put its state back afterwards (initialize_config_dir replaces the singleton)
+    outer = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(conf.resolve()), version_base="1.3", job_name="make_dynamics_model"):
+            cfg = compose(config_name="config", overrides=composed)
+        validate_config(cfg)
+    except ConfigError as err:
+        raise ValueError(f"make_dynamics_model: {err}") from None
+    except Exception as err:  # Hydra / OmegaConf composition errors, in one line naming the override
+        raise ValueError(f"make_dynamics_model: {_omegaconf_line(err)}") from None
+    finally:
+        GlobalHydra.instance().clear()
+        if outer is not None:
+            GlobalHydra.instance().initialize(outer)
+    return cfg
 
 
 def load_dynamics_checkpoint(path, expect: Mapping[str, Any] | None = None, *, map_location="cpu"):

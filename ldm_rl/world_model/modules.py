@@ -8,18 +8,21 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import nn
 
-from ldm_rl.keys import (
-    ACTION, HEIGHTMAP, HOLDING, IN_HAND, NEXT_LOGITS, PRED_HEIGHTMAP, PRED_HOLDING, PRED_IN_HAND, next_key,
-)
+from ldm_rl.keys import ACTION, FORESIGHT_KEYS, HEIGHTMAP, HOLDING, IN_HAND, NEXT_LOGITS, next_key
 from ldm_rl.runtime import eval_mode
 from ldm_rl.world_model.core import DynamicsModel
 
-__all__ = ["DynamicsPredictor", "make_dynamics_module", "STATE_KEYS", "NEXT_KEYS", "FORESIGHT_KEYS", "ROOT_KEYS"]
+__all__ = ["DynamicsPredictor", "make_dynamics_module", "STATE_KEYS", "PREDICTED_KEYS", "NEXT_KEYS", "FORESIGHT_KEYS",
+           "ROOT_KEYS"]
 
 # the model's inputs: the state *and the action* (``ldm_rl.keys.STATE_KEYS`` is the state alone = ROOT_KEYS)
 STATE_KEYS: tuple[NestedKey, ...] = (HEIGHTMAP, IN_HAND, HOLDING, ACTION)
+# out_keys choices of make_dynamics_module:
+#   PREDICTED_KEYS (default): beside the real transition, ("next", "pred_heightmap"|...) + next_logits: never clobbers
+#   NEXT_KEYS: in place of the next state, ("next", "heightmap"|...) + next_logits: for imagined data only
+#   ROOT_KEYS: over the state itself (the imagined env steps this way)
+PREDICTED_KEYS: tuple[NestedKey, ...] = (*FORESIGHT_KEYS, NEXT_LOGITS)
 NEXT_KEYS: tuple[NestedKey, ...] = (next_key(HEIGHTMAP), next_key(IN_HAND), next_key(HOLDING), NEXT_LOGITS)
-FORESIGHT_KEYS: tuple[NestedKey, ...] = (PRED_HEIGHTMAP, PRED_IN_HAND, PRED_HOLDING)
 ROOT_KEYS: tuple[NestedKey, ...] = (HEIGHTMAP, IN_HAND, HOLDING)
 
 
@@ -43,17 +46,21 @@ class DynamicsPredictor(nn.Module):
 
 def make_dynamics_module(
     model: DynamicsModel,
-    out_keys: Sequence[NestedKey] = NEXT_KEYS,
+    out_keys: Sequence[NestedKey] = PREDICTED_KEYS,
     in_keys: Sequence[NestedKey] = STATE_KEYS,
 ) -> TensorDictModule:
     """Wrap ``model`` as a TensorDictModule (predictions in eval mode, no gradients; see :class:`DynamicsPredictor`).
 
     ``in_keys``: (heightmap, in_hand, holding, action). ``out_keys``: 3 keys (heightmap', in_hand',
-    holding') or 4 (+ frame logits). Defaults write the predicted next state where a real transition
-    keeps it, ``("next", ...)``, plus ``next_logits``; pass :data:`FORESIGHT_KEYS` for foresight keys
-    beside a real transition or :data:`ROOT_KEYS` to overwrite the state (imagined env).
+    holding') or 4 (+ frame logits ``[*B, K, S, S]``). The default, :data:`PREDICTED_KEYS`, writes
+    ``("next", "pred_heightmap")``, ``("next", "pred_in_hand")``, ``("next", "pred_holding")`` and
+    ``next_logits``: beside a real transition's ``("next", "heightmap")``, never over it (the keys the
+    :class:`~ldm_rl.world_model.ForesightTransform` writes). :data:`NEXT_KEYS` writes the prediction as the
+    next state (imagined data only); :data:`ROOT_KEYS` overwrites the state (the imagined env). A missing
+    input key raises ``KeyError`` naming it; an empty batch raises ``ValueError``.
     """
     in_keys, out_keys = list(in_keys), list(out_keys)
     if len(in_keys) != 4 or len(out_keys) not in (3, 4):
         raise ValueError(f"need 4 in_keys and 3 or 4 out_keys, got {in_keys} -> {out_keys}")
-    return TensorDictModule(DynamicsPredictor(model, return_logits=len(out_keys) == 4), in_keys=in_keys, out_keys=out_keys)
+    predictor = DynamicsPredictor(model, return_logits=len(out_keys) == 4)
+    return TensorDictModule(predictor, in_keys=in_keys, out_keys=out_keys, strict=True)

@@ -21,10 +21,10 @@ from tensordict.utils import NestedKey
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from ldm_rl.keys import NEXT, require_keys
+from ldm_rl.keys import NEXT, PRED_KEYS, require_keys
 from ldm_rl.runtime import eval_mode
 from ldm_rl.world_model.core import DynamicsModel
-from ldm_rl.world_model.modules import FORESIGHT_KEYS, STATE_KEYS
+from ldm_rl.world_model.modules import STATE_KEYS
 
 __all__ = ["ForesightTransform"]
 
@@ -42,7 +42,7 @@ class ForesightTransform(Transform):
         model: DynamicsModel,
         *,
         in_keys: Sequence[NestedKey] = STATE_KEYS,
-        out_keys: Sequence[NestedKey] = FORESIGHT_KEYS,
+        out_keys: Sequence[NestedKey] = PRED_KEYS,
     ) -> None:
         in_keys, out_keys = list(in_keys), list(out_keys)
         if len(in_keys) != 4 or len(out_keys) != 3:
