@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Any, Callable
 
-__all__ = ["EvaluationResult", "wilson_interval", "evaluate_policy"]
+__all__ = ["EvaluationResult", "wilson_interval", "evaluate_policy", "episode_succeeded", "episode_steps"]
 
 
 @dataclass(frozen=True)
@@ -42,15 +43,25 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959964) -> tuple[f
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def episode_succeeded(rollout) -> bool:
+    """An episode (``[T]`` TensorDict of ``env.rollout``) succeeded: it ended terminated with a positive reward."""
+    last = rollout[-1]
+    return bool(last["next", "terminated"].any()) and float(last["next", "reward"].sum()) > 0
+
+
 def evaluate_policy(env, policy, episodes: int, *, seed: int | None = None, max_steps: int = 1000,
-                    progress: bool = False) -> EvaluationResult:
+                    progress: bool = False, on_episode: Callable[[int, Any], None] | None = None) -> EvaluationResult:
     """Run ``episodes`` greedy episodes of ``policy`` (a TensorDict module) on ``env`` (a TorchRL env).
 
-    ``seed`` reseeds ``env`` first, so the same seed gives the same evaluation scenes.
+    ``seed`` reseeds ``env`` first, so the same seed gives the same evaluation scenes. ``on_episode(i,
+    rollout)`` (optional) receives each finished episode ``i`` (from 0) as the ``[T]`` TensorDict of
+    ``env.rollout`` (state, the policy's outputs, ``("next", …)``), e.g. to keep some for pictures
+    (:func:`episode_steps`).
     """
     import torch
     from torchrl.envs.utils import ExplorationType, set_exploration_type
-    from tqdm.auto import tqdm
+
+    from ldm_rl.progress import progress_bar
 
     if not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be a positive int, got {episodes!r}")
@@ -58,13 +69,72 @@ def evaluate_policy(env, policy, episodes: int, *, seed: int | None = None, max_
         env.set_seed(int(seed))
     successes, returns, lengths = 0, [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        for _ in tqdm(range(episodes), desc="evaluate", unit="episode", disable=not progress):
+        for index in progress_bar(range(episodes), desc="evaluate", unit="episode", enabled=progress):
             rollout = env.rollout(max_steps, policy, break_when_any_done=True)
-            last = rollout[-1]
-            reward = float(last["next", "reward"].sum())
-            successes += int(bool(last["next", "terminated"].any()) and reward > 0)
+            successes += int(episode_succeeded(rollout))
             returns.append(float(rollout["next", "reward"].sum()))
             lengths.append(rollout.shape[0])
+            if on_episode is not None:
+                on_episode(index, rollout)
     low, high = wilson_interval(successes, episodes)
     return EvaluationResult(episodes, successes, successes / episodes, low, high,
                             sum(returns) / episodes, sum(lengths) / episodes)
+
+
+def episode_steps(rollout, *, episode: int = 0, dynamics=None, q_network=None) -> list[dict]:
+    """One plain row per step of an evaluation episode, for :mod:`ldm_rl.plots` (``plot_decision``,
+    ``plot_episodes_gif``).
+
+    Args:
+        rollout: the ``[T]`` TensorDict of ``env.rollout`` (as :func:`evaluate_policy` passes it).
+        episode: the episode's index, copied into the rows.
+        dynamics: a :class:`~ldm_rl.world_model.DynamicsModel`; gives ``predicted_heightmap``, its
+            prediction for the action taken (one batched pass in eval mode, no gradients).
+        q_network: ``(heightmap, in_hand, holding) -> [T, R, H, W]``, used for ``q_map`` when the
+            policy did not write ``action_value``.
+
+    Each row: ``episode``, ``step``, ``num_steps``, ``heightmap`` / ``next_heightmap`` ``[H, W]`` m,
+    ``action`` ``[3]``, ``is_pick`` (hand empty before the step), ``reward``, ``outcome`` (last step
+    only: ``success`` / ``failure``), and where available ``q_map`` ``[R, H, W]``, ``candidates``
+    ``[N, 3]``, ``values`` ``[N]``, ``predicted_heightmap`` ``[H, W]``.
+    """
+    import torch
+
+    from ldm_rl import keys
+    from ldm_rl.runtime import eval_mode
+
+    keys.require_keys(rollout, [keys.HEIGHTMAP, keys.IN_HAND, keys.HOLDING, keys.ACTION,
+                                (keys.NEXT, keys.HEIGHTMAP), (keys.NEXT, keys.REWARD)], "episode_steps")
+    state = [rollout.get(k) for k in (keys.HEIGHTMAP, keys.IN_HAND, keys.HOLDING)]
+    present = set(rollout.keys())
+    q_maps = rollout.get(keys.ACTION_VALUE) if keys.ACTION_VALUE in present else None
+    predicted = None
+    with torch.no_grad():
+        if q_maps is None and q_network is not None:
+            with eval_mode(q_network):
+                q_maps = q_network(*state)
+        if dynamics is not None:
+            with eval_mode(dynamics):
+                predicted = dynamics.predict(*state, rollout.get(keys.ACTION)).heightmap
+    candidates = rollout.get(keys.CANDIDATE_ACTIONS) if keys.CANDIDATE_ACTIONS in present else None
+    values = rollout.get(keys.CANDIDATE_VALUES) if keys.CANDIDATE_VALUES in present else None
+    n = rollout.shape[0]
+    outcome = "success" if episode_succeeded(rollout) else "failure"
+    rows = []
+    for t in range(n):
+        row = {
+            "episode": episode, "step": t, "num_steps": n,
+            "heightmap": state[0][t, 0], "next_heightmap": rollout.get((keys.NEXT, keys.HEIGHTMAP))[t, 0],
+            "action": rollout.get(keys.ACTION)[t], "is_pick": not bool(state[2][t].any()),
+            "reward": float(rollout.get((keys.NEXT, keys.REWARD))[t].sum()),
+        }
+        if t == n - 1:
+            row["outcome"] = outcome
+        if q_maps is not None:
+            row["q_map"] = q_maps[t]
+        if candidates is not None and values is not None:
+            row["candidates"], row["values"] = candidates[t], values[t]
+        if predicted is not None:
+            row["predicted_heightmap"] = predicted[t, 0]
+        rows.append(row)
+    return rows

@@ -5,13 +5,24 @@
     python recipes/evaluate.py -m checkpoint=... num_objects=4,5
 
 Rebuilds the agent from the configuration stored in the checkpoint, plays ``episodes`` episodes under
-``ExplorationType.DETERMINISTIC`` and prints the success rate with a 95 % Wilson interval; writes
-``evaluation.json`` to the run folder.
+``ExplorationType.DETERMINISTIC`` and logs the success rate with a 95 % Wilson interval; writes
+``evaluation.json``, ``config_resolved.yaml`` and ``evaluate.log`` (what the console showed) to the run folder.
+``progress``: a bar with ETA on a terminal, else plain lines every 10 % or 30 s.
+
+Pictures of the first ``render.episodes`` episodes (needs matplotlib: ``pip install 'ldm_rl[plot]'``):
+
+    python recipes/evaluate.py checkpoint=... render.episodes=2               # decisions/*.png + episodes.gif
+
+``decisions/episodeEE_stepTT.png``: the heightmap, the Q map (max over rotations), the N candidates and their
+values, the chosen action; ``episodes.gif``: each step's heightmap before, the world model's predicted next
+heightmap for the chosen action, and the real next one. The pictures are drawn after the episodes from
+what ``env.rollout`` already returns, so ``render.episodes=0`` (the default) costs nothing.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import sys
 
 import hydra
@@ -19,14 +30,17 @@ from omegaconf import DictConfig
 
 from ldm_rl.config_schema import EvaluateConfig, check_command_line, validate_config
 
+log = logging.getLogger("evaluate")
+
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> dict:
     from ldm_rl.checkpoint import CheckpointError
+    from ldm_rl.plots import PlotDependencyError
 
     try:
         return evaluate(cfg)
-    except CheckpointError as err:
+    except (CheckpointError, PlotDependencyError) as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
 
@@ -36,11 +50,18 @@ def evaluate(cfg: DictConfig) -> dict:
     from ldm_rl.agents import load_agent
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.evaluation import evaluate_policy
-    from ldm_rl.runtime import atomic_write_text, hydra_output_dir, resolve_device, seed_everything, set_threads
+    from ldm_rl.runtime import atomic_write_text, hydra_output_dir, resolve_device, save_resolved_config, seed_everything, \
+        set_threads
 
     validate_config(cfg, EvaluateConfig)
+    keep = int(cfg.render.episodes)
+    if keep:
+        from ldm_rl.plots import require_matplotlib
+
+        require_matplotlib()  # before any episode is played
     set_threads(cfg.threads)
     seed_everything(int(cfg.seed))
+    save_resolved_config(cfg, hydra_output_dir())
     path = hydra.utils.to_absolute_path(str(cfg.checkpoint))
     agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device))
     env_cfg = dict(train_cfg["env"])
@@ -50,12 +71,59 @@ def evaluate(cfg: DictConfig) -> dict:
     if cfg.num_objects is not None and cfg.max_steps is None:
         env_cfg["max_steps"] = None  # 2·objects + slack for the new object count
     env = make_env_from_config(env_cfg)
-    result = evaluate_policy(env, agent.policy, int(cfg.episodes), seed=int(cfg.seed) + 2_000_000, progress=bool(cfg.progress))
+    recorded: list = []
+    on_episode = (lambda index, rollout: recorded.append(rollout) if index < keep else None) if keep else None
+    result = evaluate_policy(env, agent.policy, int(cfg.episodes), seed=int(cfg.seed) + 2_000_000, progress=bool(cfg.progress),
+                             on_episode=on_episode)
     summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name, **result.as_dict()}
+    if recorded:
+        summary["pictures"] = render_episodes(recorded, agent, cfg, hydra_output_dir(), max_height=float(env_cfg["max_height"]),
+                                              num_rotations=int(env_cfg["num_rotations"]),
+                                              label=f"{agent.name} agent, {env_cfg['id']} ({env_cfg['num_objects']} objects)")
     atomic_write_text(hydra_output_dir() / "evaluation.json", json.dumps(summary, indent=2))
-    print(f"{agent.name} agent on {env_cfg['id']} with {env_cfg['num_objects']} objects: {result}")
+    log.info(f"{agent.name} agent on {env_cfg['id']} with {env_cfg['num_objects']} objects: {result}")
     return summary
+
+
+def world_model(agent):
+    """The agent's dynamics model (its planner's, else its LDM loss'), or None (FC-DQN has none)."""
+    from ldm_rl.world_model import DynamicsModel
+
+    for owner in (agent.policy, getattr(agent, "dynamics_loss", None)):
+        model = getattr(owner, "dynamics", None)
+        if isinstance(model, DynamicsModel):
+            return model
+    return None
+
+
+def render_episodes(rollouts: list, agent, cfg: DictConfig, out_dir, *, max_height: float, num_rotations: int,
+                    label: str) -> dict:
+    """``decisions/*.png`` (if ``render.decisions``) and ``episodes.gif`` (if ``render.gif``) of the recorded
+    episodes in ``out_dir``; returns what was written (paths relative to ``out_dir``)."""
+    from ldm_rl.evaluation import episode_steps
+    from ldm_rl.plots import plot_decision, plot_episodes_gif
+    from ldm_rl.progress import progress_bar
+
+    dynamics, q_network = world_model(agent), getattr(agent.policy, "q_network", None)
+    steps = [row for index, rollout in enumerate(rollouts)
+             for row in episode_steps(rollout, episode=index, dynamics=dynamics, q_network=q_network)]
+    written: dict = {}
+    if cfg.render.decisions:
+        names = []
+        for row in progress_bar(steps, desc="decisions", unit="png", enabled=bool(cfg.progress)):
+            name = f"decisions/episode{row['episode'] + 1:02d}_step{row['step'] + 1:02d}.png"
+            plot_decision(row["heightmap"], row.get("q_map"), row.get("candidates"), row.get("values"), row["action"],
+                          out_dir / name, max_height=max_height, num_rotations=num_rotations, is_pick=row["is_pick"],
+                          title=f"{label}, episode {row['episode'] + 1}, step {row['step'] + 1}/{row['num_steps']}")
+            names.append(name)
+        written["decisions"] = names
+    if cfg.render.gif:
+        plot_episodes_gif(steps, out_dir / "episodes.gif", max_height=max_height, num_rotations=num_rotations,
+                          fps=float(cfg.render.fps), title=label)
+        written["gif"] = "episodes.gif"
+    log.info(f"pictures of {len(rollouts)} episode(s) ({len(steps)} steps) -> {out_dir}")
+    return written
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@
 
 Exactly one of ``demos.num_steps`` / ``demos.num_episodes`` (the other null): both set is rejected before
 anything runs. The folder is written atomically in the verified format of ``ldm_rl.data.demos``
-(float32 heights: loading it gives the in-process data bit for bit).
+(float32 heights: loading it gives the in-process data bit for bit). The run folder gets config_resolved.yaml and
+generate_demos.log (what the console showed); ``demos.progress``: a bar with ETA on a terminal, else plain lines.
 """
 
 from __future__ import annotations
@@ -27,13 +28,16 @@ def main(cfg: DictConfig) -> None:
     from pathlib import Path
 
     from ldm_rl.data.demos import collect_demos, save_demos
-    from ldm_rl.runtime import hydra_output_dir, seed_everything, set_threads
+    from ldm_rl.runtime import hydra_output_dir, save_resolved_config, seed_everything, set_threads
 
     validate_config(cfg)  # each job of a sweep; a single run was checked before Hydra started
     set_threads(cfg.threads)
     seed_everything(cfg.seed)
     demos = cfg.demos
     out = Path(hydra.utils.to_absolute_path(str(demos.out))) if demos.out else hydra_output_dir() / "demos"
+    save_resolved_config(cfg, hydra_output_dir())
+    budget = f"{demos.num_steps} steps" if demos.num_steps is not None else f"{demos.num_episodes} episodes"
+    log.info("collecting %s of the %s expert on %s (%d objects)", budget, demos.procedure, cfg.env.id, int(cfg.env.num_objects))
     td = collect_demos(
         OmegaConf.to_container(cfg.env, resolve=True),
         num_steps=demos.num_steps,

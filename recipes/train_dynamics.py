@@ -6,9 +6,11 @@
     python recipes/train_dynamics.py -m experiment=table1_block_stacking model=ldm64,ldm128,naive seed=0,1,2
     python recipes/train_dynamics.py resume=true hydra.run.dir=outputs/2025-01-01/12-00-00   # continue a run
 
-Writes to the Hydra run directory: metrics.csv, the TorchRL logger's scalars, checkpoint.pt (every
-dynamics.checkpoint_every iterations, at the end, and on SIGINT/SIGTERM), final_metrics.json,
-sr_vs_iteration.png and predictions.png (before | predicted | true | |error|).
+Writes to the Hydra run directory: the logger's scalars (``logger=csv`` default: train_dynamics/scalars/dynamics/*.csv,
+one per metric, read with ``ldm_rl.runtime.read_scalars``; tensorboard | wandb | mlflow | none, docs/logging.md),
+checkpoint.pt (every dynamics.checkpoint_every iterations, at the end, and on SIGINT/SIGTERM), final_metrics.json,
+sr_vs_iteration.png, predictions.png (before | predicted | true | |error|), config_resolved.yaml and train_dynamics.log
+(what the console showed). Progress: a bar with ETA on a terminal, else a plain line every 10 % or 30 s.
 
 Resume: ``resume=true hydra.run.dir=<the run's folder>`` replays the run's own overrides (from its
 ``.hydra/overrides.yaml``) and continues from its checkpoint; the result equals an uninterrupted run's
@@ -19,6 +21,7 @@ folder). Loading a trained model: ``ldm_rl.world_model.factory.load_dynamics_che
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
 
@@ -28,6 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from ldm_rl.config_schema import ConfigError, check_command_line, config_differences, validate_config  # registers the schema
 
 CHECKPOINT = "checkpoint.pt"
+log = logging.getLogger("train_dynamics")
 
 
 def load_transitions(cfg: DictConfig):
@@ -40,6 +44,8 @@ def load_transitions(cfg: DictConfig):
     from ldm_rl.data.demos import collect_demos
 
     demos = cfg.demos  # the noise and procedure of recipes/generate_demos.py
+    log.info("collecting %d noisy expert transitions on %s (%d objects)", int(cfg.dynamics.num_demo_steps), cfg.env.id,
+             int(cfg.env.num_objects))
     return collect_demos(
         OmegaConf.to_container(cfg.env, resolve=True),
         num_steps=int(cfg.dynamics.num_demo_steps),
@@ -82,14 +88,14 @@ def resume_hint(out_dir) -> str:
 def main(cfg: DictConfig) -> dict:
     from ldm_rl.checkpoint import CheckpointError, RunStopped
     from ldm_rl.data.demos import DemoDataError
-    from ldm_rl.runtime import hydra_output_dir
+    from ldm_rl.runtime import MissingExtraError, hydra_output_dir
 
     try:
         return train(cfg)
     except RunStopped as stopped:
         print(f"{stopped}; resume with: {resume_hint(hydra_output_dir())}", file=sys.stderr, flush=True)
         raise SystemExit(stopped.exit_code) from None
-    except (ConfigError, CheckpointError, DemoDataError) as err:
+    except (ConfigError, CheckpointError, DemoDataError, MissingExtraError) as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
     except KeyboardInterrupt:
@@ -108,7 +114,7 @@ def train(cfg: DictConfig) -> dict:
     config = OmegaConf.to_container(cfg, resolve=True)
     removed = clean_stale_temporaries(out_dir)
     if removed:
-        print(f"removed {len(removed)} temporary file(s) left by an interrupted save: {', '.join(p.name for p in removed)}")
+        log.info(f"removed {len(removed)} temporary file(s) left by an interrupted save: {', '.join(p.name for p in removed)}")
     checkpoint_path = out_dir / CHECKPOINT
     resuming = checkpoint_path.is_file()
     if resuming:
@@ -121,7 +127,7 @@ def train(cfg: DictConfig) -> dict:
             raise ConfigError(f"resume=true: this command's config differs from the run's in {checkpoint_path}: "
                               f"{'; '.join(diffs[:6])} (a resumed run keeps its config)")
     elif cfg.resume:
-        print(f"resume=true: no checkpoint in {_short(str(out_dir))} yet; starting from iteration 0", flush=True)
+        log.info(f"resume=true: no checkpoint in {_short(str(out_dir))} yet; starting from iteration 0")
 
     import torch
 
@@ -129,13 +135,16 @@ def train(cfg: DictConfig) -> dict:
     from ldm_rl.checkpoint import CheckpointError, StopSignals, load_checkpoint
     from ldm_rl.metrics import MetricSettings
     from ldm_rl.objectives import LDMLoss
-    from ldm_rl.runtime import atomic_write_text, make_logger, resolve_device, seed_everything, set_threads
+    from ldm_rl.runtime import (atomic_write_text, close_logger, make_logger, resolve_device, save_resolved_config,
+                                seed_everything, set_threads)
     from ldm_rl.world_model import build_dynamics_model, count_parameters
     from ldm_rl.world_model.training import REQUIRED_KEYS, data_fingerprint, model_label, split_transitions, train_dynamics
 
     set_threads(cfg.threads)
     seed_everything(int(cfg.seed))
     device = resolve_device(cfg.device)
+    save_resolved_config(cfg, out_dir)
+    logger = make_logger(cfg.logger, out_dir, config=config)  # before the demos: a missing package fails at once
     data = load_transitions(cfg)
     missing = [key for key in REQUIRED_KEYS if key not in data.keys(include_nested=True)]
     if missing:
@@ -169,9 +178,9 @@ def train(cfg: DictConfig) -> dict:
     label, task = model_label(cfg.model), _env_choice()
     d = cfg.dynamics
     where = f", resuming at iteration {checkpoint.meta['iteration']}/{d.iterations}" if checkpoint else ""
-    print(f"{label} ({cfg.model.preset}, {count_parameters(model):,} params) on {task}: "
-          f"{train_set.shape[0]} train / {val.shape[0]} held-out transitions, device {device}, "
-          f"{torch.get_num_threads()} thread(s){where}", flush=True)
+    log.info(f"{label} ({cfg.model.preset}, {count_parameters(model):,} params) on {task}: "
+             f"{train_set.shape[0]} train / {val.shape[0]} held-out transitions, device {device}, "
+             f"{torch.get_num_threads()} thread(s){where}")
     meta = {"kind": "dynamics", "preset": str(cfg.model.preset), "task": str(cfg.env.id), "model": label,
             "seed": int(cfg.seed), "data_sha256": fingerprint, "config": config, "max_height": max_height,
             "threads": torch.get_num_threads(), "device": str(device), "torch": torch.__version__,
@@ -181,14 +190,18 @@ def train(cfg: DictConfig) -> dict:
             model, loss, train_set, val, out_dir=out_dir, settings=settings, iterations=int(d.iterations),
             batch_size=int(d.batch_size), lr=float(d.lr), lr_decay=float(d.lr_decay), lr_decay_every=int(d.lr_decay_every),
             weight_decay=float(d.weight_decay), eval_every=int(d.eval_every), eval_batch_size=int(d.eval_batch_size),
-            grid_samples=int(d.grid_samples), logger=make_logger(cfg.logger, out_dir), seed=int(cfg.seed),
+            grid_samples=int(d.grid_samples), logger=logger, seed=int(cfg.seed),
             autocast=d.get("autocast"), checkpoint_every=int(d.checkpoint_every), checkpoint_meta=meta,
-            resume=checkpoint, stop=stop,
+            resume=checkpoint, stop=stop, progress=True,
         )
+    close_logger(logger)
     summary = {"task": task, "model": label, "preset": str(cfg.model.preset), "seed": int(cfg.seed),
                "train_transitions": int(train_set.shape[0]), "val_transitions": int(val.shape[0]), **final}
     atomic_write_text(out_dir / "final_metrics.json", json.dumps(summary, indent=2))
-    print(f"done: SR {100 * final['sr']:.1f}%  L1 {final['l1_mm']:.2f} mm -> {out_dir}")
+    from ldm_rl.metrics import format_report
+
+    log.info(f"done: SR {100 * final['sr']:.1f}% (floor {100 * final.get('floor_sr', float('nan')):.1f}%)  "
+             f"L1 {final['l1_mm']:.2f} mm per pixel -> {out_dir}\n{format_report(final, settings.iou_threshold)}")
     return summary
 
 

@@ -148,13 +148,15 @@ def test_rng_states_round_trip_through_a_checkpoint(tmp_path):
 
 
 def test_stop_signals_set_a_flag_then_a_second_signal_aborts():
+    # SIGTERM both times: a suite started in the background (`pytest &`) inherits an ignored SIGINT, which
+    # StopSignals leaves ignored on purpose
     previous = signal.getsignal(signal.SIGTERM)
     with ck.StopSignals() as stop:
         os.kill(os.getpid(), signal.SIGTERM)
         assert stop.requested and stop.signal_name == "SIGTERM"
         with pytest.raises(SystemExit) as exited:
-            os.kill(os.getpid(), signal.SIGINT)
-        assert exited.value.code == 128 + signal.SIGINT
+            os.kill(os.getpid(), signal.SIGTERM)
+        assert exited.value.code == 128 + signal.SIGTERM
     assert signal.getsignal(signal.SIGTERM) is previous
     stopped = ck.RunStopped("SIGTERM", 30, 400, "run/checkpoint.pt")
     assert str(stopped) == "stopped by SIGTERM at iteration 30/400; checkpoint saved to run/checkpoint.pt"
@@ -214,7 +216,7 @@ def test_stop_then_resume_equals_an_uninterrupted_run(tmp_path):
     assert _same(resumed, full)
     for key in ("model", "loss", "optimizer", "scheduler", "rows", "running"):
         assert _same(final.state[key], reference.state[key]), key
-    assert (tmp_path / "stopped" / "metrics.csv").read_text().count("\n") == 4
+    assert not (tmp_path / "stopped" / "metrics.csv").exists()  # without a logger the rows live in the checkpoint only
 
 
 @pytest.mark.usefixtures("one_torch_thread")

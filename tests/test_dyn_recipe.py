@@ -70,10 +70,19 @@ def test_train_dynamics_recipe_smoke(tmp_path):
     ]
     result = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
-    for name in ("checkpoint.pt", "metrics.csv", "predictions.png", "final_metrics.json", "sr_vs_iteration.png"):
+    for name in ("checkpoint.pt", "predictions.png", "final_metrics.json", "sr_vs_iteration.png", "config_resolved.yaml"):
         assert (run_dir / name).is_file(), name
-    rows = (run_dir / "metrics.csv").read_text().strip().splitlines()
-    assert rows[0].startswith("iteration,loss") and len(rows) == 3
+    from ldm_rl.runtime import read_scalars
+
+    scalars = read_scalars(run_dir)  # the CSV logger (logger=csv, the default) is the one record of each scalar
+    assert [step for step, _ in scalars["dynamics/sr"]] == [2, 4] and len(scalars["dynamics/iterations_per_s"]) == 2
+    assert not (run_dir / "metrics.csv").exists()
+    assert "${" in (run_dir / ".hydra" / "config.yaml").read_text()  # Hydra's copy keeps interpolations...
+    assert "${" not in (run_dir / "config_resolved.yaml").read_text()  # ...the run's own copy has the values it used
+    logged = (run_dir / "train_dynamics.log").read_text()  # Python logging: the run's log holds the console's lines
+    shown = [line for line in result.stdout.splitlines() if line.strip()]
+    assert shown and all(line in logged for line in shown)
+    assert "train dynamics: 4/4 it (100%)" in logged and "done: SR" in logged
     summary = json.loads((run_dir / "final_metrics.json").read_text())
     assert summary["model"] == "LDM(64)" and summary["task"] == "block_stacking" and 0 <= summary["sr"] <= 1
     from ldm_rl.world_model.factory import load_dynamics_checkpoint

@@ -54,7 +54,7 @@ def test_main_command_runs_and_writes_what_the_readme_promises(tmp_path):
     done = subprocess.run([sys.executable, str(recipe), *small], capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     (run_dir,) = (tmp_path / "outputs").glob("*/*")  # outputs/<date>/<time>/
-    for name in ("metrics.csv", "checkpoint.pt", "predictions.png", "final_metrics.json"):
+    for name in ("train_dynamics/scalars/dynamics/sr.csv", "checkpoint.pt", "predictions.png", "final_metrics.json"):
         assert (run_dir / name).is_file(), name
     summary = json.loads((run_dir / "final_metrics.json").read_text())
     assert (summary["model"], summary["preset"], summary["task"]) == ("LDM(64)", "lite", "block_stacking")

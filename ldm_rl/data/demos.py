@@ -109,7 +109,7 @@ def collect_demos(
         procedure: ``"direct"`` (the direct planner) or ``"deconstruct"`` (build, deconstruct, replay
             reversed; block stacking and house building only; failed deconstructions are skipped).
         noise: ``{"position": metres, "random_action_prob": p}`` (default: noiseless).
-        progress: show a tqdm bar.
+        progress: show progress (``ldm_rl.progress``: a bar with ETA on a terminal, else periodic log lines).
 
     The metadata's ``num_episodes`` / ``success_rate`` describe the episodes collected (before a
     ``num_steps`` cut); ``success_rate`` counts episodes ending terminated with a positive reward.
@@ -129,9 +129,9 @@ def collect_demos(
     run = run_expert_episode if procedure == "direct" else run_deconstruct_episode
     rng = np.random.default_rng(seed)
     episodes, steps = [], 0
-    from tqdm.auto import tqdm
+    from ldm_rl.progress import progress_bar
 
-    bar = tqdm(total=budget, unit="step" if num_steps else "episode", disable=not progress, desc=f"demos {env_id}")
+    bar = progress_bar(total=budget, unit="step" if num_steps else "episode", enabled=progress, desc=f"demos {env_id}")
     try:
         while (steps if num_steps else len(episodes)) < budget:
             episode = run(env, int(rng.integers(2**31)), noise)
