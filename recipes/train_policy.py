@@ -11,8 +11,11 @@ episodes into prioritized replay → ``schedule.updates_per_step`` agent updates
 written back, β annealed) → every ``schedule.eval_every`` updates the greedy policy plays
 ``schedule.eval_episodes`` episodes on a separate env. Writes to the run folder: ``curve.csv`` (success
 against episodes, env steps, updates and wall-clock), ``learning_curve.png``, ``checkpoint.pt`` (every
-``schedule.checkpoint_every`` updates, at the end of an episode, and at the end), ``final_metrics.json``
-and the logger's scalars.
+``schedule.checkpoint_every`` updates, at the end of an episode, and at the end), ``final_metrics.json``,
+the logger's scalars (``logger=csv|tensorboard|wandb|mlflow|none``: losses, learning rates,
+``train/env_steps_per_s``, ``train/updates_per_s``, ``eval/success_rate``...; docs/logging.md),
+``config_resolved.yaml`` and ``train_policy.log`` (what the console showed). ``schedule.progress``: bars
+with ETA on a terminal, plain lines every 10 % or 30 s otherwise.
 """
 
 from __future__ import annotations
@@ -51,9 +54,10 @@ def expert_episodes(cfg: DictConfig) -> list:
 
 
 def write_curve(rows: list[dict], out_dir, title: str) -> None:
-    """curve.csv and learning_curve.png (success against episodes and against wall-clock)."""
+    """curve.csv and learning_curve.png (``ldm_rl.plots.plot_learning_curve``), rewritten at every evaluation."""
     import csv
 
+    from ldm_rl.plots import PlotDependencyError, plot_learning_curve
     from ldm_rl.runtime import atomic_path
 
     with atomic_path(out_dir / "curve.csv") as tmp, open(tmp, "w", newline="") as f:
@@ -61,34 +65,17 @@ def write_curve(rows: list[dict], out_dir, title: str) -> None:
         writer.writeheader()
         writer.writerows({k: row[k] for k in CURVE_FIELDS} for row in rows)
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    for ax, x, label in ((axes[0], "episodes", "training episodes"), (axes[1], "wall_s", "wall-clock (min)")):
-        xs = [r[x] / (60 if x == "wall_s" else 1) for r in rows]
-        ax.plot(xs, [r["success_rate"] for r in rows], "o-", label="greedy success rate")
-        ax.fill_between(xs, [r["ci_low"] for r in rows], [r["ci_high"] for r in rows], alpha=0.25, label="95 % interval")
-        ax.set_xlabel(label)
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("success rate")
-    axes[0].legend(loc="lower right")
-    fig.suptitle(title)
-    fig.tight_layout()
-    with atomic_path(out_dir / "learning_curve.png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+        plot_learning_curve(rows, out_dir / "learning_curve.png", title=f"Greedy success rate: {title}")
+    except PlotDependencyError as err:  # say it once per run
+        if len(rows) == 1:
+            log.warning("%s: skipping learning_curve.png", err)
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train_policy")
 def main(cfg: DictConfig) -> dict:
     """The run, with one-line reports of a stop signal or a bad checkpoint/config."""
     from ldm_rl.checkpoint import CheckpointError, RunStopped
-    from ldm_rl.runtime import hydra_output_dir
+    from ldm_rl.runtime import MissingExtraError, hydra_output_dir
 
     try:
         return train(cfg)
@@ -96,7 +83,7 @@ def main(cfg: DictConfig) -> dict:
         print(f"{stopped}; resume with: python {sys.argv[0]} resume=true hydra.run.dir={hydra_output_dir()}",
               file=sys.stderr, flush=True)
         raise SystemExit(stopped.exit_code) from None
-    except (ConfigError, CheckpointError) as err:
+    except (ConfigError, CheckpointError, MissingExtraError) as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
 
@@ -105,17 +92,17 @@ def train(cfg: DictConfig) -> dict:
     """Seed, pretrain, collect, update, evaluate, checkpoint (see the module docstring)."""
     import torch
     from hydra.utils import instantiate
-    from torchrl.collectors import Collector
 
     from ldm_rl.agents import build_agent
     from ldm_rl.checkpoint import (CHECKPOINT_NAME, RunStopped, StopSignals, capture_rng_state, clean_stale_temporaries,
                                    load_checkpoint, restore_rng_state, save_checkpoint)
     from ldm_rl.data.replay import FrameReplay
     from ldm_rl.envs import make_env_from_config
-    from ldm_rl.envs.torchrl_env import unwrap
+    from ldm_rl.collectors import EpisodeAssembler, TaskEnvFactory, collected_steps, make_collector, shutdown_collector
     from ldm_rl.evaluation import evaluate_policy
-    from ldm_rl.runtime import atomic_write_text, hydra_output_dir, make_logger, resolve_device, \
-        seed_everything, set_threads
+    from ldm_rl.progress import progress_bar
+    from ldm_rl.runtime import atomic_write_text, close_logger, hydra_output_dir, make_logger, resolve_device, \
+        save_resolved_config, seed_everything, set_threads
 
     validate_config(cfg, TrainPolicyConfig)  # the command line was checked before Hydra; this covers sweep jobs
     set_threads(cfg.threads)
@@ -128,6 +115,8 @@ def train(cfg: DictConfig) -> dict:
     if cfg.resume and not resuming:
         log.info(f"resume=true: no checkpoint in {out_dir} yet; starting from episode 0")
     s = cfg.schedule
+    save_resolved_config(cfg, out_dir)
+    logger = make_logger(cfg.logger, out_dir, config=OmegaConf.to_container(cfg, resolve=True))
     start = time.perf_counter()
     max_height = float(cfg.env.max_height)
     agent = build_agent(cfg, max_height).to(device)
@@ -136,26 +125,26 @@ def train(cfg: DictConfig) -> dict:
                          priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus),
                          scratch_dir=cfg.replay.scratch_dir)
     beta = instantiate(cfg.replay.beta)
-    logger = make_logger(cfg.logger, out_dir)
     task = f"{cfg.env.id} ({cfg.env.num_objects} objects)"
     # the k-th training episode's scene comes from seed reset_seed + k, so a resumed run replays the same scenes
-    env = make_env_from_config(cfg.env, reset_seed=int(cfg.seed) * 1_000_000)
+    # (with collector.num_workers=N, worker w's scenes start at reset_seed + w * 1_000_000 // N: ldm_rl/collectors.py)
+    env_factory = TaskEnvFactory(cfg.env, reset_seed=int(cfg.seed) * 1_000_000)
     eval_env = make_env_from_config(cfg.env)
     counters = {"episodes": 0, "env_steps": 0}
-    curve, steps, recent = [], [], deque(maxlen=100)
+    curve, recent = [], deque(maxlen=100)
     metrics: dict[str, float] = {}
     meta = {"kind": "agent", "agent": agent.name, "preset": str(cfg.agent.preset or cfg.model.preset), "task": cfg.env.id,
             "config": OmegaConf.to_container(cfg, resolve=True)}
 
     def evaluate(episodes: int) -> dict:
-        result = evaluate_policy(eval_env, agent.policy, episodes, seed=int(cfg.seed) + 1_000_000)
+        result = evaluate_policy(eval_env, agent.policy, episodes, seed=int(cfg.seed) + 1_000_000, progress=bool(s.progress))
         scores = {("eval_episodes" if key == "episodes" else key): value for key, value in result.as_dict().items()}
         row = {"updates": agent.updates, **counters, "wall_s": time.perf_counter() - start, **scores}
         curve.append(row)
         write_curve(curve, out_dir, f"{agent.name} agent, {task}, seed {cfg.seed}")
         if logger is not None:
-            for key in ("success_rate", "ci_low", "ci_high", "mean_length"):
-                logger.log_scalar(f"eval/{key}", row[key], step=counters["episodes"])
+            logger.log_metrics({f"eval/{key}": row[key] for key in ("success_rate", "ci_low", "ci_high", "mean_length")},
+                               step=counters["episodes"])
         log.info(f"[{row['wall_s'] / 60:6.1f} min] updates {agent.updates:6d}  episodes {counters['episodes']:5d}  eval {result}")
         return row
 
@@ -186,43 +175,47 @@ def train(cfg: DictConfig) -> dict:
             curve.extend(checkpoint.state["curve"])
             recent.extend(checkpoint.state["recent"])
             start -= float(checkpoint.state["wall_s"])
-            unwrap(env).episode_index = counters["episodes"]
+            env_factory.start_episode = counters["episodes"]
             log.info(f"resumed {out_dir} at {counters['episodes']} episodes, {agent.updates} updates")
         else:
             log.info(f"{agent.name} agent on {task}: seeding replay with {s.expert_episodes} expert episodes")
             for episode in expert_episodes(cfg):
                 replay.extend_episode(episode.to(device), expert=True)
-            for _ in range(int(s.pretrain_updates)):
+            for _ in progress_bar(range(int(s.pretrain_updates)), desc="pretrain LDM", unit="update", enabled=bool(s.progress)):
                 agent.pretrain_update(replay.sample())
             evaluate(int(s.eval_episodes))
 
-        collector = Collector(env, agent.policy, frames_per_batch=1, total_frames=-1, device=device,
-                              auto_register_policy_transforms=False)
+        collector = make_collector(cfg.collector, env_factory, agent.policy, device=device, seed=int(cfg.seed))
+        episodes = EpisodeAssembler(TRANSITION_KEYS)  # each worker's steps, until its episode ends
         if resuming:  # after the collector's first reset and policy probe, as in the uninterrupted run
             restore_rng_state(checkpoint.state["rng"], {"replay": replay.generator})
         next_eval = (agent.updates // int(s.eval_every) + 1) * int(s.eval_every)
         next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
-        for data in collector:
-            step = data[0].select(*TRANSITION_KEYS)
-            steps.append(step)
+        bar = progress_bar(total=int(s.total_episodes), initial=counters["episodes"], desc="train", unit="episode",
+                           enabled=bool(s.progress))
+        rate_t, rate_steps, rate_updates = time.perf_counter(), counters["env_steps"], agent.updates
+        for step in collected_steps(collector):  # one transition at a time; worker weights refreshed per batch
+            episode = episodes.add(step)
             counters["env_steps"] += 1
-            episode_over = bool(step["next", "done"])
+            episode_over = episode is not None
             if episode_over:
-                replay.extend_episode(torch.stack(steps))
-                steps.clear()
+                replay.extend_episode(episode)
                 counters["episodes"] += 1
                 recent.append(float(bool(step["next", "terminated"]) and float(step["next", "reward"]) > 0))
+                bar.set_postfix(updates=agent.updates, success_last100=f"{sum(recent) / len(recent):.2f}", refresh=False)
+                bar.update(1)
             for _ in range(int(s.updates_per_step)):
                 batch = replay.sample()
                 metrics = agent.update(batch)
                 replay.update_priority(batch["index"], batch["td_error"])
                 replay.beta = float(beta(agent.updates))
             if logger is not None and counters["env_steps"] % 10 == 0:
-                wall = time.perf_counter() - start
-                for key, value in {**metrics, **agent.learning_rates(), **agent.planner.hyperparameters(),
-                                   "train/success_last100": sum(recent) / max(1, len(recent)),
-                                   "env_steps_per_s": counters["env_steps"] / wall, "updates_per_s": agent.updates / wall}.items():
-                    logger.log_scalar(key, value, step=agent.updates)
+                now = time.perf_counter()  # rates over the last 10 env steps (an evaluation in between counts)
+                rates = {"train/env_steps_per_s": (counters["env_steps"] - rate_steps) / (now - rate_t),
+                         "train/updates_per_s": (agent.updates - rate_updates) / (now - rate_t)}
+                rate_t, rate_steps, rate_updates = now, counters["env_steps"], agent.updates
+                logger.log_metrics({**metrics, **agent.learning_rates(), **agent.planner.hyperparameters(), **rates,
+                                    "train/success_last100": sum(recent) / max(1, len(recent))}, step=agent.updates)
             if agent.updates >= next_eval:
                 evaluate(int(s.eval_episodes))
                 next_eval += int(s.eval_every)
@@ -234,12 +227,15 @@ def train(cfg: DictConfig) -> dict:
                 save()
                 next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
             if stop.requested:
-                collector.shutdown()
+                shutdown_collector(collector)
+                bar.close()
                 raise RunStopped(stop.signal_name, counters["episodes"], int(s.total_episodes), checkpoint_path)
             if finished:
                 break
-    collector.shutdown()
+    bar.close()
+    shutdown_collector(collector)
     final = evaluate(int(s.final_eval_episodes))
+    close_logger(logger)
     summary = {"agent": agent.name, "task": cfg.env.id, "num_objects": int(cfg.env.num_objects), "seed": int(cfg.seed),
                "preset": str(cfg.agent.preset or cfg.model.preset), **{k: final[k] for k in CURVE_FIELDS},
                "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}
