@@ -195,10 +195,15 @@ class LossConfig:
 
 @dataclass
 class LoggerConfig:
-    """``conf/logger/*.yaml``: ``ldm_rl.runtime.make_logger``."""
+    """``conf/logger/*.yaml``: ``ldm_rl.runtime.make_logger`` (TorchRL's ``get_logger``; docs/logging.md)."""
 
-    backend: str = spec(choices=("csv", "tensorboard", "none"), doc="TorchRL logger")
+    backend: str = spec(choices=("csv", "tensorboard", "wandb", "mlflow", "none"), doc="TorchRL logger")
     exp_name: str = MISSING
+    project: Optional[str] = spec(None, doc="wandb project; null = ldm_rl")
+    group: Optional[str] = spec(None, doc="wandb run group, e.g. one per sweep")
+    mode: Optional[str] = spec(None, choices=(None, "online", "offline", "disabled"),
+                               doc="wandb mode; null = $WANDB_MODE, else online")
+    tracking_uri: Optional[str] = spec(None, doc="mlflow store: a folder or a server/database URI; null = ./mlruns")
 
 
 @dataclass
@@ -356,6 +361,8 @@ class AgentConfig:
     target_update_interval: int = spec(ge=1, doc="updates between target-network copies")
     q_grad_clip: Optional[float] = spec(None, gt=0, doc="element-wise Q gradient clamp")
     target_range: Optional[List[float]] = None
+    double_value: bool = False
+    q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -390,6 +397,8 @@ class PlannerConfig:
     num_candidates: int = spec(ge=1, doc="N proposals per decision")
     proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode while exploring")
     greedy_proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode under DETERMINISTIC")
+    greedy_schedules: str = spec("start", choices=("start", "current"),
+                                 doc="schedules under DETERMINISTIC: their start values or the training step's")
     tau: Any = MISSING
     beta: Any = MISSING
     sigma: Any = MISSING
@@ -441,6 +450,26 @@ class ScheduleConfig:
 
 
 @dataclass
+class CollectorConfig:
+    """``collector`` of ``conf/train_policy.yaml``: ``ldm_rl.collectors.make_collector`` (docs/scaling.md)."""
+
+    num_workers: int = spec(1, ge=1, le=1024, doc="env workers; 1 = TorchRL's Collector in the training process")
+    sync: bool = True
+    frames_per_worker: int = spec(1, ge=1, doc="steps each worker collects between weight refreshes")
+    backend: str = spec("process", choices=("process", "distributed"), doc="worker processes here | DistributedCollector")
+    launcher: str = spec("mp", choices=("mp", "submitit", "submitit_delayed"), doc="how backend=distributed starts workers")
+    tcp_port: Optional[int] = spec(None, ge=1, le=65535, doc="backend=distributed rendezvous port")
+    slurm: typing.Dict[str, Any] = field(default_factory=dict)
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        if node.backend == "distributed" and not node.sync:
+            return [f"{prefix}sync=false needs {prefix}backend=process: the distributed collector's async batches do "
+                    "not say which worker sent them"]
+        return []
+
+
+@dataclass
 class TrainPolicyConfig(RunSettings):
     """``conf/train_policy.yaml``: the groups, plus seed / device / threads / resume."""
 
@@ -452,9 +481,20 @@ class TrainPolicyConfig(RunSettings):
     replay: ReplayConfig = group(ReplayConfig)
     schedule: ScheduleConfig = group(ScheduleConfig)
     logger: LoggerConfig = group(LoggerConfig)
+    collector: CollectorConfig = group(CollectorConfig)
     resume: bool = False
 
     check = Config.check
+
+
+@dataclass
+class RenderConfig:
+    """``render`` of ``conf/evaluate.yaml``: pictures of the first evaluation episodes (``ldm_rl.plots``)."""
+
+    episodes: int = spec(0, ge=0, doc="episodes to draw (the first ones); 0 = no pictures")
+    decisions: bool = True
+    gif: bool = True
+    fps: float = spec(1.0, gt=0, le=30, doc="frames (steps) per second of episodes.gif")
 
 
 @dataclass
@@ -467,6 +507,14 @@ class EvaluateConfig(RunSettings):
     max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode (null = 2*objects + 4)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="the preset the checkpoint must hold")
     progress: bool = True
+    render: RenderConfig = group(RenderConfig)
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        if node.render.episodes > node.episodes:
+            return [f"{prefix}render.episodes={node.render.episodes} exceeds {prefix}episodes={node.episodes}: only "
+                    "played episodes can be drawn"]
+        return []
 
 
 # the schema of each primary config, by its name (conf/<name>.yaml lists `- optional schema: <name>`)
@@ -673,13 +721,26 @@ def check_command_line(
 
     Returns the argv to run (the given one, or with the replayed overrides). On a problem (composition,
     types, ranges, contradictions, resume) prints ``error: <one line>`` on stderr and exits with code 2;
-    nothing is created. ``--help``, ``--info`` and friends pass through untouched. Multirun
+    nothing is created. ``--help`` prints the recipe's own help (:mod:`ldm_rl.recipe_help`: what it does
+    and writes, the groups it reads, every key) and exits 0; ``--hydra-help``, ``--info`` and friends pass
+    through untouched. Multirun
     (``-m``) validates the values shared by every job here, and each job validates its own in ``main``.
     """
     argv = list(sys.argv if argv is None else argv)
     from hydra._internal.utils import get_args_parser
 
     args = get_args_parser().parse_args(argv[1:])  # bad flags: argparse's usage + exit 2, as Hydra would
+    if args.help and not args.hydra_help:  # the recipe's own help (ldm_rl/recipe_help.py), then exit 0
+        from ldm_rl.recipe_help import print_recipe_help
+
+        try:
+            print_recipe_help(recipe_file, config_path=args.config_path or config_path,
+                              config_name=args.config_name or config_name, config_dir=args.config_dir,
+                              overrides=args.overrides, checkpoint_name=checkpoint_name)
+        except FileNotFoundError as err:
+            print(f"error: {err}", file=sys.stderr, flush=True)
+            raise SystemExit(2) from None
+        raise SystemExit(0)
     if args.help or args.hydra_help or args.info or args.shell_completion or args.experimental_rerun:
         return argv
     try:

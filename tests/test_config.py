@@ -70,12 +70,14 @@ def test_experiment_presets_compose_and_set_what_they_say(preset):
     file = CONF / "experiment" / f"{preset}.yaml"
     text = file.read_text()
     config_name = _primary_config_of(text)
-    cfg = make_cfg(f"experiment={preset}", config_name=config_name)
+    defaults = OmegaConf.to_container(OmegaConf.load(CONF / f"{config_name}.yaml")).get("defaults", [])
+    plus = "" if any(isinstance(d, dict) and "experiment" in d for d in defaults) else "+"  # evaluate.yaml: +experiment=
+    cfg = make_cfg(f"{plus}experiment={preset}", config_name=config_name)
     raw = OmegaConf.to_container(OmegaConf.load(file), resolve=False)
     leaves = list(_leaves(raw))
     assert leaves or raw.get("defaults"), f"{preset} sets nothing"
     for key, value in leaves:
-        if isinstance(value, str) and "${" in value:
+        if (isinstance(value, str) and "${" in value) or key.startswith("hydra."):  # e.g. hydra.sweeper.params
             continue
         assert OmegaConf.select(cfg, key) == value, f"{preset}: {key}"
     for entry in raw.get("defaults", []):
@@ -184,7 +186,10 @@ def test_the_command_line_check_imports_no_torch():
     (["model.num_rotations=4"], "model.num_rotations=4 differs from env.num_rotations=8"),
     (["loss.class_weights=[1,2]"], "loss.class_weights has 2 entries: must have model.num_depth_classes=21"),
     (["device=gpu0"], "device='gpu0' is invalid: must be auto, cpu, cuda, cuda:N or mps"),
-    (["logger.backend=wandb"], "logger.backend='wandb' is invalid: must be one of 'csv', 'tensorboard', 'none'"),
+    (["logger.backend=neptune"], "logger.backend='neptune' is invalid: must be one of 'csv', 'tensorboard', 'wandb', 'mlflow', "
+                                 "'none'"),
+    (["logger=wandb", "logger.mode=sometimes"], "logger.mode='sometimes' is invalid: must be one of null, 'online', 'offline', "
+                                                "'disabled'"),
     (["dynamics.val_fraction=1.5", "threads=0"], "threads=0 is out of range: must be in [1, 1024] (torch intra-op threads; "
                                                    "null = torch's default); dynamics.val_fraction=1.5 is out of range: "
                                                    "must be in (0, 1) (held-out fraction)"),

@@ -97,6 +97,24 @@ def test_schedules_follow_the_step(nets):
     assert planner.hyperparameters()["tau"] == pytest.approx(0.1)
 
 
+def test_greedy_proposals_use_the_start_inhibition_unless_asked_for_the_current(nets):
+    # late in training the 1-px inhibition packs the argmax proposals together; the greedy policy keeps them apart
+    def closest_pair_px(greedy_schedules):
+        planner = make_planner(nets, proposal="argmax", sigma=Linear(8.0, 1.0, 100), sigma_rot=Linear(2.0, 0.5, 100),
+                               greedy_schedules=greedy_schedules)
+        planner.set_step(100)
+        assert planner.hyperparameters()["sigma"] == 1.0
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            position = planner(batch(2))["candidate_actions"][..., :2].float()  # [B, N, 2]
+        distance = torch.cdist(position, position) + 1e9 * torch.eye(position.shape[1])
+        return planner.hyperparameters(greedy=True)["sigma"], distance.amin((-1, -2))
+
+    sigma_start, closest_start = closest_pair_px("start")
+    sigma_current, closest_current = closest_pair_px("current")
+    assert (sigma_start, sigma_current) == (8.0, 1.0)
+    assert (closest_start > closest_current).all(), (closest_start, closest_current)
+
+
 def test_lookahead_is_chunk_invariant(nets):
     q, dynamics, value = nets
     s = scenes(3)

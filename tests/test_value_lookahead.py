@@ -94,3 +94,39 @@ def test_out_keys_name_what_forward_returns():
     loss = make_loss()
     assert set(loss(transitions(3)).keys()) == set(loss.out_keys)
     assert "LookaheadLoss" in repr(loss)
+
+
+def _per_candidate_scores(loss, batch):
+    """Target-LDM predictions of the target proposals, scored by the (target V, online V): [B, N] each."""
+    from ldm_rl.planning.sampling import sample_candidates
+    from ldm_rl.planning.lookahead import lookahead
+
+    state = [batch["next", key] for key in ("heightmap", "in_hand", "holding")]
+    with torch.no_grad(), loss.target_networks():
+        q_map = loss.q_network.eval()(*state)
+        cands = sample_candidates(q_map, loss.num_target_candidates, **loss.target_proposal)
+        return lookahead(loss.dynamics, loss._target_and_online_value, *state, cands).values.unbind(-1)
+
+
+def test_double_value_scores_the_online_choice_with_the_target_network():
+    loss = make_loss(double_value=True)
+    plain = make_loss(double_value=False)
+    batch = transitions(6, terminated=torch.zeros(6, 1, dtype=torch.bool))
+    # online == target weights: choosing with one and scoring with the other is the plain max
+    torch.testing.assert_close(loss.targets(batch)[1], plain.targets(batch)[1])
+    with torch.no_grad():  # the online V drifts away from its target copy
+        for p in loss.value_network.parameters():
+            p.mul_(-1.5)
+    target_v, online_v = _per_candidate_scores(loss, batch)
+    chosen = target_v.gather(1, online_v.argmax(1, keepdim=True))
+    torch.testing.assert_close(loss.targets(batch)[1], batch["next", "reward"] + 0.9 * chosen)
+    assert (chosen <= target_v.amax(1, keepdim=True)).all() and (chosen < target_v.amax(1, keepdim=True)).any()
+
+
+def test_lookahead_q_target_is_the_value_target():
+    loss = make_loss(q_target="lookahead")
+    batch = transitions(5, terminated=torch.tensor([[True], [False], [False], [True], [False]]))
+    y_q, y_v = loss.targets(batch)
+    assert torch.equal(y_q, y_v)
+    with pytest.raises(ValueError, match="q_target"):
+        make_loss(q_target="double")

@@ -50,6 +50,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         value_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),
         chunk_size=int(agent_cfg.get("chunk_size", 64)),
         target_range=agent_cfg.get("target_range"),
+        double_value=bool(agent_cfg.get("double_value", False)),
+        q_target=str(agent_cfg.get("q_target", "max")),
     )
     loss_cfg = _plain(cfg["loss"])
     class_weights = loss_cfg.get("class_weights")

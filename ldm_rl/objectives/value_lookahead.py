@@ -6,12 +6,16 @@ includes the reward received on *arriving* in ``s``, so for a transition ``(s, a
 * ``y_V = r + γ·(1 − terminated)·max_{a' ∈ Ā_N(s')} V⁻(f⁻(s', a'))`` is the target of ``V(s')`` — on the
   real next state and (option ``value_on_prediction``, the reference's t = 1 term) on the model's
   prediction ``f(s, a)``, the kind of state V scores when planning;
-* ``y_Q = r + γ·(1 − terminated)·max_{a'} Q⁻(s', a')`` is the target of ``Q(s, a)`` (plain DQN max);
+* ``y_Q = r + γ·(1 − terminated)·max_{a'} Q⁻(s', a')`` is the target of ``Q(s, a)`` (plain DQN max;
+  option ``q_target="lookahead"``: ``y_Q = y_V``, the same return estimated through the lookahead, so Q
+  learns to propose what V ranks first and avoids a max over R·H·W noisy entries);
 * the reward head learns ``R(s') ≈ r`` on the same states (Random Shooting and Dyna-Q use it).
 
 ``Ā_N(s')`` are N proposals drawn from the target Q map by
 :func:`~ldm_rl.planning.sampling.sample_candidates` (argmax with inhibition by default: deterministic
-targets). The target Q map is computed ONCE per state and serves both targets; the whole minibatch is
+targets). With ``double_value`` the best proposal is chosen by the online V and scored by the target V,
+both on the target LDM's predictions (double estimation, as double DQN: the max of noisy scores is
+biased upwards, the score of an independently chosen candidate is not). The target Q map is computed ONCE per state and serves both targets; the whole minibatch is
 planned in one batched pass (``lookahead``), terminal transitions skipped. Target networks are the
 ``target_*_params`` of this module (TorchRL's ``convert_to_functional``), synced by a TorchRL target
 updater (``HardUpdate``). Predictions for targets run in eval mode without gradients.
@@ -55,10 +59,13 @@ class LookaheadLoss(TransitionLoss):
         value_on_prediction: also fit ``V(f(s, a))`` to ``y_V`` (uses ``next_logits`` from the LDM loss
             when the batch holds them, else one eval-mode prediction).
         chunk_size: state-candidate pairs per LDM/V pass of the targets.
-        target_range: ``(low, high)`` the returns can take, or None; both targets are clamped into it. Every
+        target_range: ``(low, high)`` the returns can take, or None; the bootstrapped next-state values
+            and both targets are clamped into it. Every
             task here rewards only on termination, with a reward in [0, 1], so returns lie in [0, 1]: the
             clamp stops the max over predicted states (amplified by 1/(1−γ)) from feeding on itself
             (measured: y_V 0.9 → 3.6 within 200 updates without it).
+        double_value: choose the target candidate with the online V, score it with the target V.
+        q_target: ``"max"`` (the paper: ``r + γ max Q⁻(s')``) or ``"lookahead"`` (``y_Q = y_V``).
     """
 
     @dataclass
@@ -92,8 +99,13 @@ class LookaheadLoss(TransitionLoss):
         value_on_prediction: bool = True,
         chunk_size: int = 64,
         target_range: tuple[float, float] | None = None,
+        double_value: bool = False,
+        q_target: str = "max",
     ) -> None:
         super().__init__()
+        if q_target not in ("max", "lookahead"):
+            raise ValueError(f"q_target must be 'max' or 'lookahead', got {q_target!r}")
+        self.q_target, self.double_value = q_target, bool(double_value)
         if target_range is not None and not (len(target_range) == 2 and target_range[0] < target_range[1]):
             raise ValueError(f"target_range must be None or (low, high) with low < high, got {target_range!r}")
         self.target_range = None if target_range is None else (float(target_range[0]), float(target_range[1]))
@@ -137,14 +149,29 @@ class LookaheadLoss(TransitionLoss):
             with self.target_networks(), eval_mode(self.q_network, self.value_network, self.dynamics):
                 q_map = self.q_network(heightmap, in_hand, holding)
                 candidates = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)
-                scores = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
+                scorer = self._target_and_online_value if self.double_value else self.value_network
+                scores = lookahead(self.dynamics, scorer, heightmap, in_hand, holding, candidates,
                                    chunk_size=self.chunk_size).values
             q_next[rows] = q_map.flatten(1).amax(1, keepdim=True)
-            v_next[rows] = scores.amax(1, keepdim=True)
-        y_q, y_v = reward + self.gamma * q_next, reward + self.gamma * v_next
+            if self.target_range is not None:  # a state's value is a return too: bootstrap from values in range
+                scores, q_next = scores.clamp(*self.target_range), q_next.clamp(*self.target_range)
+            if self.double_value:  # scores [b, N, 2]: (target V, online V) of each predicted state
+                best = scores[..., 1].argmax(1, keepdim=True)
+                v_next[rows] = scores[..., 0].gather(1, best)
+            else:
+                v_next[rows] = scores.amax(1, keepdim=True)
+        y_v = reward + self.gamma * v_next
+        y_q = y_v.clone() if self.q_target == "lookahead" else reward + self.gamma * q_next
         if self.target_range is not None:
             y_q, y_v = y_q.clamp(*self.target_range), y_v.clamp(*self.target_range)
         return y_q, y_v
+
+    def _target_and_online_value(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> torch.Tensor:
+        """``[M, 2]``: V under the target weights (loaded inside ``target_networks``) and the online ones."""
+        target = self.value_network(heightmap, in_hand)
+        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
+            online = self.value_network(heightmap, in_hand)
+        return torch.cat([target, online], 1)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys.require_keys(tensordict, self.in_keys, type(self).__name__)

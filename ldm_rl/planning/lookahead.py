@@ -22,7 +22,7 @@ __all__ = ["LookaheadResult", "lookahead"]
 class LookaheadResult(NamedTuple):
     """Scores of ``[B, N]`` candidates."""
 
-    values: torch.Tensor  # [B, N] float32: V(f(s, a))
+    values: torch.Tensor  # [B, N] float32: V(f(s, a)) ([B, N, K] for a value network with K outputs)
     rewards: torch.Tensor | None  # [B, N] float32: R(f(s, a)) (reward head), when asked for
     next_holding: torch.Tensor  # [B, N] bool: predicted hand state after the action
 
@@ -42,7 +42,8 @@ def lookahead(
     ``[B, 1, 128, 128]`` f32 m, ``in_hand`` ``[B, 1, 24, 24]`` f32 m, ``holding`` ``[B, 1]`` bool.
 
     ``dynamics`` is a :class:`~ldm_rl.world_model.DynamicsModel`; ``value_network`` maps
-    (heightmap, in_hand) to ``[M, 1]`` values and offers ``value_and_reward`` when ``with_reward``.
+    (heightmap, in_hand) to ``[M, 1]`` values (or ``[M, K]``: K scores per state, e.g. under two sets of
+    weights, giving ``values`` ``[B, N, K]``; a plain callable runs in the mode its caller set) and offers ``value_and_reward`` when ``with_reward``.
     """
     if not torch.is_tensor(candidates) or candidates.dim() != 3 or candidates.shape[-1] != 3:
         shape = tuple(candidates.shape) if torch.is_tensor(candidates) else type(candidates).__name__
@@ -56,7 +57,7 @@ def lookahead(
     owner = torch.arange(b, device=candidates.device).repeat_interleave(n)  # state row of each pair
     holding = holding.reshape(b, 1).bool()
     values, rewards, next_holding = [], [], []
-    with eval_mode(dynamics, value_network):
+    with eval_mode(*(m for m in (dynamics, value_network) if isinstance(m, nn.Module))):
         for start in range(0, b * n, chunk_size):
             rows = owner[start : start + chunk_size]
             pred = dynamics.predict(
@@ -70,10 +71,11 @@ def lookahead(
                 rewards.append(reward.reshape(-1))
             else:
                 value = value_network(pred.heightmap, pred.in_hand)
-            values.append(value.reshape(-1))
+            values.append(value.reshape(value.shape[0], -1))
             next_holding.append(pred.holding.reshape(-1))
+    values = torch.cat(values)
     return LookaheadResult(
-        torch.cat(values).reshape(b, n),
+        values.reshape(b, n) if values.shape[1] == 1 else values.reshape(b, n, -1),
         torch.cat(rewards).reshape(b, n) if with_reward else None,
         torch.cat(next_holding).reshape(b, n),
     )

@@ -12,7 +12,9 @@ One decision, batched over ``[*B]`` states (paper §3.3–3.4):
 
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
-which the training loop advances with :meth:`LookaheadPlanner.set_step`.
+which the training loop advances with :meth:`LookaheadPlanner.set_step`. The greedy policy reads them at
+step 0 by default (``greedy_schedules="start"``): the widest inhibition, as the reference's test policy,
+so its N proposals stay on different objects however far training has annealed exploration.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ __all__ = ["LookaheadPlanner", "is_greedy"]
 
 ScheduleLike = Union[float, Callable[[int], float]]
 PROPOSAL_MODES = ("softmax", "argmax")
+GREEDY_SCHEDULES = ("start", "current")
 _GREEDY = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
 
 
@@ -65,6 +68,8 @@ class LookaheadPlanner(TensorDictModuleBase):
         tau_value: temperature of the final choice among the N scores (V units) while exploring.
         proposal: ``"softmax"`` (paper) or ``"argmax"`` (reference code) while exploring.
         greedy_proposal: the proposal mode under DETERMINISTIC (``"argmax"``: a deterministic policy).
+        greedy_schedules: ``"start"``: under DETERMINISTIC the schedules are read at step 0 (the reference's
+            test policy keeps its initial inhibition window); ``"current"``: at :attr:`step`, as when exploring.
         chunk_size: state-candidate pairs per LDM/V pass.
         write_action_value: also write the ``[*B, R, H, W]`` Q map (``action_value``), 512 KB per state.
 
@@ -88,6 +93,7 @@ class LookaheadPlanner(TensorDictModuleBase):
         tau_value: ScheduleLike = 0.1,
         proposal: str = "softmax",
         greedy_proposal: str = "argmax",
+        greedy_schedules: str = "start",
         chunk_size: int = 64,
         write_action_value: bool = True,
     ) -> None:
@@ -97,6 +103,9 @@ class LookaheadPlanner(TensorDictModuleBase):
         for name, mode in (("proposal", proposal), ("greedy_proposal", greedy_proposal)):
             if mode not in PROPOSAL_MODES:
                 raise ValueError(f"{name} must be one of {PROPOSAL_MODES}, got {mode!r}")
+        if greedy_schedules not in GREEDY_SCHEDULES:
+            raise ValueError(f"greedy_schedules must be one of {GREEDY_SCHEDULES}, got {greedy_schedules!r}")
+        self.greedy_schedules = greedy_schedules
         self.q_network, self.dynamics, self.value_network = q_network, dynamics, value_network
         self.num_candidates, self.proposal, self.greedy_proposal = num_candidates, proposal, greedy_proposal
         self.chunk_size, self.write_action_value = int(chunk_size), bool(write_action_value)
@@ -115,9 +124,11 @@ class LookaheadPlanner(TensorDictModuleBase):
             raise ValueError(f"step must be a non-negative int, got {step!r}")
         self.step = step
 
-    def hyperparameters(self) -> dict[str, float]:
-        """The schedules' current values (τ, β, σ, σ_rot, τ_v)."""
-        return {name: float(schedule(self.step)) for name, schedule in self.schedules.items()}
+    def hyperparameters(self, *, greedy: bool = False) -> dict[str, float]:
+        """The schedules' values (τ, β, σ, σ_rot, τ_v) used when exploring (``greedy=False``, at :attr:`step`)
+        or by the greedy policy."""
+        step = 0 if greedy and self.greedy_schedules == "start" else self.step
+        return {name: float(schedule(step)) for name, schedule in self.schedules.items()}
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys.require_keys(tensordict, self.in_keys, type(self).__name__)
@@ -135,7 +146,7 @@ class LookaheadPlanner(TensorDictModuleBase):
 
     def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
         """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]}``."""
-        hp = self.hyperparameters()
+        hp = self.hyperparameters(greedy=greedy)
         with eval_mode(self.q_network, self.dynamics, self.value_network):
             q_map = self.q_network(heightmap, in_hand, holding)
             candidates = sample_candidates(
