@@ -1,0 +1,220 @@
+"""Draw the paper's learning-curve figure from ``recipes/train_policy.py`` runs.
+
+    python recipes/plot_learning_curves.py multirun/<date>/<time> [more sweeps or run folders] [--out curves.png]
+
+Reads every run below the given folders (a run folder holds ``curve.csv`` and Hydra's ``.hydra/config.yaml``
+and ``.hydra/overrides.yaml``): one panel per task (env id and object count), one line per agent, the greedy
+success rate against training episodes as the mean ± standard error over the agent's seeds. Each seed's curve
+(one point per evaluation) is interpolated linearly onto the union of the seeds' episode counts, up to the
+shortest seed's last evaluation, so every plotted point averages all seeds. Runs of one agent that differ in
+another override (e.g. two sweeps with different ``agent.lr.q``) get separate lines, labelled with it.
+Writes the figure (PNG) and a CSV of the plotted points (task, objects, agent, label, episodes, mean, se,
+n_seeds); default ``<first folder>/learning_curves.png`` and ``.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from ldm_rl.runtime import atomic_path  # noqa: E402
+
+# panel order and names of the paper's tasks (env ids of conf/env/*.yaml)
+TASKS = {
+    "ldm_rl/BlockStacking-v0": ("Block stacking", "blocks"),
+    "ldm_rl/HouseBuilding-v0": ("House building", "objects"),
+    "ldm_rl/BottleArrangement-v0": ("Bottle arrangement", "bottles"),
+    "ldm_rl/BinPacking-v0": ("Bin packing", "blocks"),
+}
+# line order, names and colours of the agents (conf/agent/*.yaml)
+AGENTS = {"ldm": ("LDM", "C0"), "fcdqn": ("FC-DQN", "C1"), "rs": ("RS", "C2"), "dynaq": ("Dyna-Q", "C3")}
+# overrides that tell replicates apart (or do not change the experiment) rather than name a variant
+REPLICATE_KEYS = ("seed", "agent", "resume")
+CSV_FIELDS = ("task", "num_objects", "agent", "label", "episodes", "mean", "se", "n_seeds")
+
+
+@dataclass
+class Run:
+    """One training run: its task, agent, seed, overrides and evaluated curve (episodes, success rate)."""
+
+    path: Path
+    task: str
+    num_objects: int
+    agent: str
+    seed: int
+    variant: tuple[str, ...]  # overrides other than seed / agent / resume / hydra's
+    episodes: list[float] = field(default_factory=list)
+    success: list[float] = field(default_factory=list)
+
+
+def _run_folders(paths: list[Path]) -> list[Path]:
+    """Every folder holding a curve.csv at or below ``paths``."""
+    found: list[Path] = []
+    for path in paths:
+        if not path.is_dir():
+            raise ValueError(f"{path}: not a folder (give a multirun sweep folder or run folders of train_policy.py)")
+        found += [p.parent for p in sorted(path.rglob("curve.csv"))]
+    return sorted(set(found))
+
+
+def _override_key(text: str) -> str:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    (override,) = OverridesParser.create().parse_overrides([text])
+    return override.key_or_group
+
+
+def read_run(folder: Path) -> Run:
+    """A run folder of ``recipes/train_policy.py`` -> :class:`Run` (one curve point per episode count: the last
+    evaluation at that count, e.g. the final 100-episode one)."""
+    from omegaconf import OmegaConf
+
+    config_file, overrides_file = folder / ".hydra" / "config.yaml", folder / ".hydra" / "overrides.yaml"
+    if not config_file.is_file():
+        raise ValueError(f"{folder}: has curve.csv but no .hydra/config.yaml (not a run of recipes/train_policy.py)")
+    cfg = OmegaConf.load(config_file)
+    overrides = OmegaConf.to_container(OmegaConf.load(overrides_file)) if overrides_file.is_file() else []
+    keys = [(o, _override_key(o)) for o in overrides or []]
+    variant = tuple(sorted(o for o, key in keys if key not in REPLICATE_KEYS and not key.startswith(("hydra.", "hydra/"))))
+    run = Run(folder, str(cfg.env.id), int(cfg.env.num_objects), str(cfg.agent.name), int(cfg.seed), variant)
+    points: dict[float, float] = {}
+    with open(folder / "curve.csv", newline="") as f:
+        for row in csv.DictReader(f):
+            points[float(row["episodes"])] = float(row["success_rate"])
+    if not points:
+        raise ValueError(f"{folder / 'curve.csv'}: no evaluation rows yet")
+    run.episodes, run.success = zip(*sorted(points.items()))
+    return run
+
+
+def mean_curve(runs: list[Run]) -> list[tuple[float, float, float]]:
+    """(episodes, mean, standard error) over the runs' seeds on their common episode range; se = sample std /
+    sqrt(n), NaN for a single seed."""
+    import numpy as np
+
+    end = min(run.episodes[-1] for run in runs)
+    grid = np.array(sorted({x for run in runs for x in run.episodes if x <= end}))
+    values = np.stack([np.interp(grid, run.episodes, run.success) for run in runs])  # [seeds, points]
+    n = len(runs)
+    se = values.std(axis=0, ddof=1) / math.sqrt(n) if n > 1 else np.full(len(grid), math.nan)
+    return [(float(x), float(m), float(e)) for x, m, e in zip(grid, values.mean(axis=0), se)]
+
+
+def group(runs: list[Run]) -> dict[tuple[str, int], dict[str, list[Run]]]:
+    """Panels (task, objects) -> line label -> runs (one per seed); an agent's label names the overrides in
+    which its runs differ from the panel's other runs."""
+    panels: dict[tuple[str, int], list[Run]] = defaultdict(list)
+    for run in runs:
+        panels[(run.task, run.num_objects)].append(run)
+    order = {task: i for i, task in enumerate(TASKS)}
+    agent_order = {agent: i for i, agent in enumerate(AGENTS)}
+    out: dict[tuple[str, int], dict[str, list[Run]]] = {}
+    for key in sorted(panels, key=lambda k: (order.get(k[0], len(order)), k)):
+        members = panels[key]
+        common = set.intersection(*(set(r.variant) for r in members))
+        lines: dict[str, list[Run]] = defaultdict(list)
+        for run in sorted(members, key=lambda r: (agent_order.get(r.agent, len(agent_order)), r.agent, r.variant, r.seed)):
+            extra = [o for o in run.variant if o not in common]
+            label = AGENTS.get(run.agent, (run.agent,))[0] + (f" ({', '.join(extra)})" if extra else "")
+            lines[label].append(run)
+        for label, line in lines.items():
+            seeds = [r.seed for r in line]
+            if len(set(seeds)) != len(seeds):
+                paths = ", ".join(str(r.path) for r in line)
+                raise ValueError(f"{TASKS.get(key[0], (key[0],))[0]}, {label}: the same seed twice ({paths}); give "
+                                 "runs that differ only in their seed, or add the override that tells them apart")
+        out[key] = dict(lines)
+    return out
+
+
+def panel_title(task: str, num_objects: int) -> str:
+    name, unit = TASKS.get(task, (task, "objects"))
+    return f"{name} ({num_objects} {unit})"
+
+
+def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
+    """Draw the figure to ``png`` and write the plotted points to ``csv_path``; returns the CSV rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(panels)
+    ncols = n if n <= 2 else 2
+    nrows = math.ceil(n / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.9 * nrows), squeeze=False)
+    rows: list[dict] = []
+    spare_colours = iter(f"C{i}" for i in range(4, 10))
+    colours: dict[str, str] = {}
+    for ax, ((task, objects), lines) in zip(axes.flat, panels.items()):
+        for label, runs in lines.items():
+            agent = runs[0].agent
+            if label not in colours:  # an agent's own colour; a variant of it (or an unknown agent) the next spare one
+                own = agent in AGENTS and label == AGENTS[agent][0]
+                colours[label] = AGENTS[agent][1] if own else next(spare_colours, None)
+            colour = colours[label]
+            points = mean_curve(runs)
+            xs, means, ses = zip(*points)
+            seeds = len(runs)
+            ax.plot(xs, means, "o-", ms=3, color=colour, label=f"{label}, {seeds} seed{'s' * (seeds > 1)}")
+            if seeds > 1:
+                ax.fill_between(xs, [m - s for m, s in zip(means, ses)], [m + s for m, s in zip(means, ses)],
+                                color=colour, alpha=0.2, linewidth=0)
+            for x, m, s in points:
+                rows.append({"task": task, "num_objects": objects, "agent": agent, "label": label, "episodes": x,
+                             "mean": m, "se": s, "n_seeds": seeds})
+        ax.set_title(panel_title(task, objects))
+        ax.set_xlabel("training episodes")
+        ax.set_ylabel("greedy success rate (fraction)")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+    for ax in list(axes.flat)[n:]:
+        ax.remove()
+    fig.suptitle("Greedy success rate against training episodes (mean ± standard error over seeds)")
+    fig.tight_layout()
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folders", nargs="+", type=Path, help="multirun sweep folder(s) or run folders of train_policy.py")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="figure path (.png; the CSV goes beside it, .csv); default <first folder>/learning_curves.png")
+    args = parser.parse_args(argv)
+    if args.out is not None and args.out.suffix.lower() != ".png":
+        parser.error(f"--out {args.out}: expected a .png path")
+    try:
+        runs = [read_run(folder) for folder in _run_folders(args.folders)]
+        if not runs:
+            raise ValueError(f"no curve.csv found under {', '.join(str(f) for f in args.folders)}")
+        panels = group(runs)
+    except ValueError as err:
+        parser.exit(2, f"error: {err}\n")
+    png = args.out or args.folders[0] / "learning_curves.png"
+    rows = plot(panels, png, png.with_suffix(".csv"))
+    for (task, objects), lines in panels.items():
+        for label, line in lines.items():
+            last = [r for r in rows if r["task"] == task and r["num_objects"] == objects and r["label"] == label][-1]
+            se = "" if math.isnan(last["se"]) else f" ± {last['se']:.2f}"
+            print(f"{panel_title(task, objects)}, {label}: {len(line)} seed(s) up to {last['episodes']:g} episodes "
+                  f"(the shortest run), success {last['mean']:.2f}{se}")
+    print(f"written to {png} and {png.with_suffix('.csv')}")
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,210 @@
+"""The paper's comparison: the curves_* / generalization_* presets, recipes/plot_learning_curves.py on a real
+multirun (and on written curves with known numbers), recipes/generalization_table.py on a smoke checkpoint."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import OmegaConf
+
+from ldm_rl.config_schema import EvaluateConfig, TrainPolicyConfig, validate_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg", "RL_WARNINGS": "0"}
+AGENTS = ("ldm", "fcdqn", "rs", "dynaq")
+TASKS = ("block_stacking", "house_building", "bottle_arrangement", "bin_packing")
+
+
+def script(name: str):
+    """A recipes/ script as a module (they are plain files, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "recipes" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # (dataclasses look their module up there)
+    spec.loader.exec_module(module)
+    return module
+
+
+plot_learning_curves = script("plot_learning_curves")
+generalization_table = script("generalization_table")
+
+
+def make_cfg(config_name: str, *overrides: str, hydra_node: bool = False):
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        return compose(config_name=config_name, overrides=list(overrides), return_hydra_config=hydra_node)
+
+
+# ------------------------------------------------------------------------------------------- presets
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_curves_preset_gives_every_agent_its_task_and_the_stated_budget(task):
+    text = (CONF / "experiment" / f"curves_{task}.yaml").read_text()
+    stated = int(re.search(r"budget of (\d+)", text).group(1))
+    assert f"python recipes/train_policy.py -m experiment=curves_{task} agent=ldm,fcdqn,rs,dynaq seed=0,1" in text
+    env_id = OmegaConf.load(CONF / "env" / f"{task}.yaml").id
+    lite = OmegaConf.load(CONF / "experiment" / "stacking_lite.yaml")
+    budgets = set()
+    for agent in AGENTS:
+        cfg = make_cfg("train_policy", f"experiment=curves_{task}", f"agent={agent}")
+        validate_config(cfg, TrainPolicyConfig)  # no key of another agent leaks in (AgentConfig.check)
+        assert cfg.agent.name == agent and cfg.env.id == env_id and cfg.threads == 1 and cfg.model.preset == "lite"
+        assert cfg.agent.q_width == lite.agent.q_width and cfg.replay.batch_size == lite.replay.batch_size
+        assert cfg.schedule.max_wall_clock_s is None  # a wall-clock stop would give slower agents fewer episodes
+        budgets.add(cfg.schedule.total_episodes)
+    assert budgets == {stated}
+    if task == "bottle_arrangement":
+        assert cfg.env.num_objects == 4  # the paper's training count (5 and 6 are the zero-shot tests)
+
+
+@pytest.mark.parametrize("task", ["block_stacking", "bottle_arrangement"])
+def test_generalization_preset_sweeps_the_papers_object_counts_for_evaluate(task, tmp_path):
+    checkpoint = tmp_path / "checkpoint.pt"
+    checkpoint.write_bytes(b"")  # the schema only asks that it exists
+    cfg = make_cfg("evaluate", f"+experiment=generalization_{task}", f"checkpoint={checkpoint}", hydra_node=True)
+    params = cfg.hydra.sweeper.params
+    validate_config(cfg, EvaluateConfig)  # (the hydra node is not checked)
+    assert cfg.episodes == 100 and cfg.num_objects is None and cfg.max_steps is None  # max_steps: 2·objects + 4
+    jobs = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()]),
+                                        None)[0]
+    counts = sorted(int(job[0].split("=")[1]) for job in jobs)
+    paper = sorted(n for t, n in generalization_table.PAPER["ldm"] if t == task)
+    assert counts == paper == list(generalization_table.protocols()[cfg_env_id(task)].counts)
+    trained = generalization_table.TRAINED_ON[task]
+    assert trained < min(counts) and f"trained on {trained}" in (CONF / "experiment" / f"generalization_{task}.yaml").read_text()
+
+
+def cfg_env_id(task: str) -> str:
+    return str(OmegaConf.load(CONF / "env" / f"{task}.yaml").id)
+
+
+# ---------------------------------------------------------------------------- learning curves: math
+
+
+def write_run(folder: Path, *, task: str, objects: int, agent: str, seed: int, points, extra=()) -> Path:
+    """A run folder as recipes/train_policy.py writes it: .hydra/config.yaml, .hydra/overrides.yaml, curve.csv."""
+    (folder / ".hydra").mkdir(parents=True)
+    OmegaConf.save(OmegaConf.create({"seed": seed, "env": {"id": task, "num_objects": objects}, "agent": {"name": agent}}),
+                   folder / ".hydra" / "config.yaml")
+    OmegaConf.save(OmegaConf.create(["experiment=curves_x", f"agent={agent}", f"seed={seed}", *extra]),
+                   folder / ".hydra" / "overrides.yaml")
+    with open(folder / "curve.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length"])
+        for i, (episodes, success) in enumerate(points):
+            writer.writerow([10 * i, episodes, 10 * i, float(i), success, 0.0, 1.0, 5.0])
+    return folder
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_curves_are_interpolated_averaged_over_seeds_and_split_by_variant(tmp_path, capsys):
+    stack, bottles = "ldm_rl/BlockStacking-v0", "ldm_rl/BottleArrangement-v0"
+    sweep = tmp_path / "sweep"
+    # two seeds evaluated at different episode counts; seed 0 evaluated twice at 20 episodes (the final eval counts)
+    write_run(sweep / "0", task=stack, objects=3, agent="ldm", seed=0, points=[(0, 0.0), (10, 0.5), (20, 0.3), (20, 1.0)])
+    write_run(sweep / "1", task=stack, objects=3, agent="ldm", seed=1, points=[(0, 0.2), (15, 0.5), (30, 0.8)])
+    write_run(sweep / "2", task=stack, objects=3, agent="ldm", seed=0, points=[(0, 0.0), (40, 0.1)], extra=["agent.lr.q=0.001"])
+    write_run(tmp_path / "other" / "run", task=bottles, objects=4, agent="fcdqn", seed=3, points=[(0, 0.0), (50, 0.25)])
+    out = tmp_path / "fig" / "curves.png"
+    out.parent.mkdir()
+    plot_learning_curves.main([str(sweep), str(tmp_path / "other" / "run"), "--out", str(out)])
+    assert out.stat().st_size > 10_000 and "written to" in capsys.readouterr().out
+    rows = read_csv(out.with_suffix(".csv"))
+    ldm = [r for r in rows if r["label"] == "LDM"]
+    # the common range ends at the shorter seed's last evaluation (20); seed 1 interpolated at 10 and 20 (0.4, 0.6)
+    assert [float(r["episodes"]) for r in ldm] == [0, 10, 15, 20]
+    assert [float(r["mean"]) for r in ldm] == pytest.approx([0.1, 0.45, 0.625, 0.8])
+    assert [float(r["se"]) for r in ldm] == pytest.approx([0.1, 0.05, 0.125, 0.2])  # |a - b| / 2 for two seeds
+    assert {r["n_seeds"] for r in ldm} == {"2"} and {r["task"] for r in ldm} == {stack}
+    variant = [r for r in rows if r["label"] == "LDM (agent.lr.q=0.001)"]
+    assert len(variant) == 2 and {r["n_seeds"] for r in variant} == {"1"} and math.isnan(float(variant[0]["se"]))
+    single = [r for r in rows if r["task"] == bottles]
+    assert [(r["label"], r["num_objects"], float(r["mean"])) for r in single] == [("FC-DQN", "4", 0.0), ("FC-DQN", "4", 0.25)]
+    assert plot_learning_curves.panel_title(bottles, 4) == "Bottle arrangement (4 bottles)"
+
+
+def test_bad_inputs_are_one_clear_error(tmp_path, capsys):
+    write_run(tmp_path / "a", task="ldm_rl/BlockStacking-v0", objects=3, agent="rs", seed=0, points=[(0, 0.0)])
+    write_run(tmp_path / "b", task="ldm_rl/BlockStacking-v0", objects=3, agent="rs", seed=0, points=[(0, 1.0)])
+    with pytest.raises(SystemExit) as stop:
+        plot_learning_curves.main([str(tmp_path)])
+    assert stop.value.code == 2 and "RS: the same seed twice" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit):
+        plot_learning_curves.main([str(tmp_path / "empty")])
+    assert capsys.readouterr().err.startswith("error: no curve.csv found under")
+    with pytest.raises(SystemExit):
+        generalization_table.main([str(tmp_path / "missing")])
+    assert "missing: no such file or folder" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- a real tiny multirun
+
+
+@pytest.fixture(scope="module")
+def smoke_sweep(tmp_path_factory):
+    """recipes/train_policy.py -m experiment=smoke agent=ldm,fcdqn seed=0,1 (4-primitive episodes to stay fast)."""
+    sweep = tmp_path_factory.mktemp("sweep")
+    command = [sys.executable, str(ROOT / "recipes" / "train_policy.py"), "-m", "experiment=smoke", "agent=ldm,fcdqn",
+               "seed=0,1", "env.max_steps=4", f"hydra.sweep.dir={sweep}"]
+    done = subprocess.run(command, capture_output=True, text=True, env=ENV, cwd=sweep, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return sweep
+
+
+@pytest.mark.slow
+def test_plot_learning_curves_aggregates_a_real_multirun(smoke_sweep, tmp_path):
+    done = subprocess.run([sys.executable, str(ROOT / "recipes" / "plot_learning_curves.py"), str(smoke_sweep)],
+                          capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert (smoke_sweep / "learning_curves.png").stat().st_size > 10_000
+    rows = read_csv(smoke_sweep / "learning_curves.csv")
+    assert {r["agent"] for r in rows} == {"ldm", "fcdqn"} and {r["n_seeds"] for r in rows} == {"2"}
+    for agent in ("ldm", "fcdqn"):
+        runs = [plot_learning_curves.read_run(folder) for folder in sorted(p.parent for p in smoke_sweep.rglob("curve.csv"))]
+        seeds = [run for run in runs if run.agent == agent]
+        assert sorted(run.seed for run in seeds) == [0, 1]
+        first = [r for r in rows if r["agent"] == agent][0]  # before training: both seeds evaluated at 0 episodes
+        assert float(first["episodes"]) == 0
+        assert float(first["mean"]) == pytest.approx(sum(run.success[0] for run in seeds) / 2)
+        assert float(first["se"]) == pytest.approx(abs(seeds[0].success[0] - seeds[1].success[0]) / 2)
+    assert "Block stacking (3 blocks), LDM: 2 seed(s)" in done.stdout
+
+
+@pytest.mark.slow
+def test_generalization_table_evaluates_a_smoke_checkpoint_beside_the_paper(smoke_sweep, tmp_path, capfd):
+    checkpoint = next(p for p in sorted(smoke_sweep.rglob("checkpoint.pt"))
+                      if generalization_table.checkpoint_info(p)["agent"] == "ldm")
+    out = tmp_path / "table"
+    text = generalization_table.main([str(checkpoint), "--episodes", "2", "--out", str(out)])
+    assert "evaluating ldm" in capfd.readouterr().out
+    assert (out / "generalization.md").read_text() == text
+    header = next(line for line in text.splitlines() if line.startswith("| agent | 4 blocks"))
+    assert header == "| agent | 4 blocks | paper | 5 blocks | paper | 5 bottles | paper | 6 bottles | paper |"
+    ldm = next(line for line in text.splitlines() if line.startswith("| LDM |")).split(" | ")
+    assert ldm[2] == "99" and ldm[4] == "84" and ldm[6] == "86" and ldm[8].rstrip(" |") == "65"
+    assert re.fullmatch(r"\d+\.\d \[\d+\.\d–\d+\.\d\] \(k=1, n=2\)", ldm[1]) and ldm[5] == "–"
+    assert next(line for line in text.splitlines() if line.startswith("| FC-DQN |")).count("n/a") == 4
+    written = sorted(out.rglob("evaluation.json"))
+    results = [json.loads(p.read_text()) for p in written]
+    assert [(r["num_objects"], r["trained_on"], r["episodes"]) for r in results] == [(4, 3, 2), (5, 3, 2)]
+    # a second call reads what is written instead of evaluating again
+    stamps = [p.stat().st_mtime_ns for p in written]
+    assert generalization_table.main([str(checkpoint), "--episodes", "2", "--out", str(out)]) == text
+    assert "evaluating" not in capfd.readouterr().out and [p.stat().st_mtime_ns for p in written] == stamps
