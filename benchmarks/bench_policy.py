@@ -17,6 +17,7 @@ compare orders of magnitude, not percent.
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 import time
 
@@ -57,13 +58,14 @@ def transitions(n: int) -> TensorDict:
                        "next": {**scenes(n, 2), "reward": torch.zeros(n, 1), "terminated": terminated}}, batch_size=[n])
 
 
-def build(preset: str, num_candidates: int, num_target_candidates: int):
+def build(preset: str, num_candidates: int, num_target_candidates: int, autocast: str | None = None):
     torch.manual_seed(0)
     width = 1.0 if preset == "paper" else 0.25
     dynamics = build_dynamics_model({"name": "ldm", "preset": preset, "width": width, "crop_size": 64}, MAX_HEIGHT)
     q = build_q_network(preset, max_height=MAX_HEIGHT)
     value = build_value_network(preset, max_height=MAX_HEIGHT)
-    planner = LookaheadPlanner(q, dynamics, value, num_candidates=num_candidates, tau=0.05, write_action_value=False)
+    planner = LookaheadPlanner(q, dynamics, value, num_candidates=num_candidates, tau=0.05, write_action_value=False,
+                               autocast=autocast)
     loss = LookaheadLoss(q, dynamics, value, num_target_candidates=num_target_candidates)
     ldm_loss = LDMLoss(dynamics, write_logits=True)
     optims = [torch.optim.Adam(m.parameters(), lr=1e-4) for m in (q, value, dynamics)]
@@ -91,47 +93,52 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--candidates", type=int, default=10)
     parser.add_argument("--target-candidates", type=int, nargs="+", default=[10])
+    parser.add_argument("--autocast", nargs="+", default=["none"], choices=["none", "bf16"],
+                        help="planner.autocast / agent.autocast settings to time (bf16: Q and LDM under bf16 autocast)")
     args = parser.parse_args()
 
     rows = []
     state = TensorDict(scenes(1), batch_size=[1])
-    for preset in args.presets:
-        for n_t in args.target_candidates:
-            planner, loss, ldm_loss, optims = build(preset, args.candidates, n_t)
-            params = {name: count_parameters(m) for name, m in
-                      (("Q", planner.q_network), ("V", planner.value_network), ("LDM", planner.dynamics))}
-            batch = transitions(args.batch)
+    for preset, n_t, precision in itertools.product(args.presets, args.target_candidates, args.autocast):
+        autocast = None if precision == "none" else precision
+        planner, loss, ldm_loss, optims = build(preset, args.candidates, n_t, autocast)
+        params = {name: count_parameters(m) for name, m in
+                  (("Q", planner.q_network), ("V", planner.value_network), ("LDM", planner.dynamics))}
+        batch = transitions(args.batch)
 
-            def decide():
-                with set_exploration_type(ExplorationType.DETERMINISTIC):
-                    planner(state.clone())
+        def decide():
+            with set_exploration_type(ExplorationType.DETERMINISTIC):
+                planner(state.clone())
 
-            def update():
-                td = batch.clone()
-                for m in (planner.q_network, planner.value_network, planner.dynamics):
-                    m.train()
+        def update():
+            td = batch.clone()
+            for m in (planner.q_network, planner.value_network, planner.dynamics):
+                m.train()
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast is not None):
                 out = ldm_loss(td)
                 lk = loss(td)
-                total = out["loss_dynamics"] + lk["loss_q"] + lk["loss_value"] + lk["loss_reward"]
-                for opt in optims:
-                    opt.zero_grad()
-                total.backward()
-                for opt in optims:
-                    opt.step()
+            total = out["loss_dynamics"] + lk["loss_q"] + lk["loss_value"] + lk["loss_reward"]
+            for opt in optims:
+                opt.zero_grad()
+            total.backward()
+            for opt in optims:
+                opt.step()
 
-            def targets():
+        def targets():
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast is not None):
                 loss.targets(batch)
 
-            for threads in args.threads:
-                torch.set_num_threads(threads)
-                for what, fn in (("decision (N=%d)" % args.candidates, decide),
-                                 (f"targets only (B={args.batch}, N_t={n_t})", targets),
-                                 (f"update incl. targets (B={args.batch}, N_t={n_t})", update)):
-                    first, best, median = timed(fn, args.repeats)
-                    rows.append((preset, threads, what, first, best, median))
-                    print(f"{preset:5s} {threads}t {what:38s} first {first:6.2f} s  best {best:6.2f} s  median {median:6.2f} s",
-                          flush=True)
-            print(f"{preset}: params " + ", ".join(f"{k} {v / 1e6:.2f} M" for k, v in params.items()), flush=True)
+        for threads in args.threads:
+            torch.set_num_threads(threads)
+            for what, fn in (("decision (N=%d)" % args.candidates, decide),
+                             (f"targets only (B={args.batch}, N_t={n_t})", targets),
+                             (f"update incl. targets (B={args.batch}, N_t={n_t})", update)):
+                first, best, median = timed(fn, args.repeats)
+                what = what if autocast is None else f"{what}, {autocast}"
+                rows.append((preset, threads, what, first, best, median))
+                print(f"{preset:5s} {threads}t {what:44s} first {first:6.2f} s  best {best:6.2f} s  median {median:6.2f} s",
+                      flush=True)
+        print(f"{preset}: params " + ", ".join(f"{k} {v / 1e6:.2f} M" for k, v in params.items()), flush=True)
 
     replay = FrameReplay(1000, max_height=MAX_HEIGHT, batch_size=32)
     for length in (4, 8):

@@ -363,6 +363,7 @@ class AgentConfig:
     target_range: Optional[List[float]] = None
     double_value: bool = False
     q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")
+    autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="ldm: autocast of the update's forward passes")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -384,6 +385,8 @@ class AgentConfig:
                 elif node.name != agent and node[key] is not None:
                     found.append(f"{prefix}{key}={_show(node[key])} is set but only agent={agent} uses it "
                                  f"(agent.name={node.name})")
+        if node.name != "ldm" and node.autocast is not None:
+            found.append(f"{prefix}autocast={_show(node.autocast)} is set but only agent=ldm uses it (agent.name={node.name})")
         bounds = node.target_range
         if bounds is not None and not (len(bounds) == 2 and bounds[0] < bounds[1]):
             found.append(f"{prefix}target_range={_show(bounds)}: must be null or [low, high] with low < high")
@@ -405,6 +408,7 @@ class PlannerConfig:
     sigma_rot: Any = MISSING
     tau_value: Any = MISSING
     chunk_size: int = spec(64, ge=1, doc="state-candidate pairs per LDM/V pass")
+    autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="autocast of the Q map and LDM predictions")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:

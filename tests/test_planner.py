@@ -148,3 +148,19 @@ def test_env_rollout_with_the_planner(nets):
         rollout = env.rollout(2, make_planner(nets))
     env.close()
     assert rollout["action"].shape == (2, 3) and rollout["candidate_actions"].shape == (2, 5, 3)
+
+
+def test_bf16_autocast_scores_the_same_candidates_in_float32(nets):
+    q, dynamics, value = nets
+    plain, fast = make_planner(nets, proposal="argmax"), make_planner(nets, proposal="argmax", autocast="bf16")
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        ref, out = plain(batch(2)), fast(batch(2))
+    assert out["candidate_values"].dtype == torch.float32 and out["action_value"].dtype == torch.float32
+    # V in float32 on the bf16 LDM's predictions: the same scores as a float32 pass on those candidates
+    s = scenes(2)
+    expected = lookahead(dynamics, value, s["heightmap"], s["in_hand"], s["holding"].reshape(2, 1),
+                         out["candidate_actions"], dynamics_autocast=True).values
+    torch.testing.assert_close(out["candidate_values"], expected)
+    torch.testing.assert_close(out["action_value"], ref["action_value"], atol=0.05, rtol=0.05)
+    with pytest.raises(ValueError, match="autocast must be None or 'bf16'"):
+        make_planner(nets, autocast="fp16")

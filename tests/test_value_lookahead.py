@@ -130,3 +130,18 @@ def test_lookahead_q_target_is_the_value_target():
     assert torch.equal(y_q, y_v)
     with pytest.raises(ValueError, match="q_target"):
         make_loss(q_target="double")
+
+
+def test_bf16_autocast_gives_float32_targets_close_to_float32_and_trainable_losses():
+    loss = make_loss(double_value=True)
+    batch = transitions(4, terminated=torch.tensor([[False], [True], [False], [False]]))
+    q_ref, v_ref = loss.targets(batch)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        q_t, v_t = loss.targets(batch)
+        out = loss(batch.clone())
+    assert q_t.dtype == v_t.dtype == torch.float32
+    torch.testing.assert_close(v_t, v_ref, atol=0.05, rtol=0.05)  # bf16 keeps ~3 significant digits
+    total = out["loss_q"] + out["loss_value"] + out["loss_reward"]
+    assert torch.isfinite(total) and total.requires_grad
+    total.backward()
+    assert all(p.grad is not None for p in loss.q_network.parameters() if p.requires_grad)

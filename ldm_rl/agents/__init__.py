@@ -65,6 +65,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         lr_decay=float(agent_cfg["lr_decay"]), lr_decay_every=int(agent_cfg["lr_decay_every"]),
         target_update_interval=int(agent_cfg["target_update_interval"]),
         q_grad_clip=agent_cfg.get("q_grad_clip"),
+        autocast=agent_cfg.get("autocast"),
     )
 
 

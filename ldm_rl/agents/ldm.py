@@ -39,6 +39,7 @@ class LDMAgent(Agent):
         lr_decay_every: int = 2000,
         target_update_interval: int = 100,
         q_grad_clip: float | None = 1.0,
+        autocast: str | None = None,
     ) -> None:
         super().__init__()
         if target_update_interval < 1 or lr_decay_every < 1 or not 0 < lr_decay <= 1:
@@ -56,6 +57,9 @@ class LDMAgent(Agent):
         # HardUpdate copies on every (k+1)-th step() call
         self.target_updater = HardUpdate(loss, value_network_update_interval=target_update_interval - 1)
         self.q_grad_clip = q_grad_clip
+        if autocast not in (None, "bf16"):
+            raise ValueError(f"autocast must be None or 'bf16', got {autocast!r}")
+        self.autocast = autocast
 
     @property
     def policy(self) -> LookaheadPlanner:
@@ -77,8 +81,10 @@ class LDMAgent(Agent):
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         self._train_mode()
-        dyn = self.dynamics_loss(batch)
-        out = self.loss(batch)
+        device = batch.device.type if batch.device is not None else "cpu"
+        with torch.autocast(device, dtype=torch.bfloat16, enabled=self.autocast == "bf16"):
+            dyn = self.dynamics_loss(batch)
+            out = self.loss(batch)
         total = dyn["loss_dynamics"] + out["loss_q"] + out["loss_value"] + out["loss_reward"]
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)

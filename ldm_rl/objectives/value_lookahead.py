@@ -147,11 +147,11 @@ class LookaheadLoss(TransitionLoss):
             in_hand = tensordict.get((keys.NEXT, k.in_hand)).index_select(0, rows)
             holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1, 1).bool().index_select(0, rows)
             with self.target_networks(), eval_mode(self.q_network, self.value_network, self.dynamics):
-                q_map = self.q_network(heightmap, in_hand, holding)
+                q_map = self.q_network(heightmap, in_hand, holding).float()  # float32 also under bf16 autocast
                 candidates = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)
                 scorer = self._target_and_online_value if self.double_value else self.value_network
                 scores = lookahead(self.dynamics, scorer, heightmap, in_hand, holding, candidates,
-                                   chunk_size=self.chunk_size).values
+                                   chunk_size=self.chunk_size).values.float()
             q_next[rows] = q_map.flatten(1).amax(1, keepdim=True)
             if self.target_range is not None:  # a state's value is a return too: bootstrap from values in range
                 scores, q_next = scores.clamp(*self.target_range), q_next.clamp(*self.target_range)

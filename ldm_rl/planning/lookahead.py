@@ -37,6 +37,7 @@ def lookahead(
     *,
     chunk_size: int = 64,
     with_reward: bool = False,
+    dynamics_autocast: bool = False,
 ) -> LookaheadResult:
     """Score ``candidates`` ``[B, N, 3]`` int64 (row, col, rot) of the states ``heightmap``
     ``[B, 1, 128, 128]`` f32 m, ``in_hand`` ``[B, 1, 24, 24]`` f32 m, ``holding`` ``[B, 1]`` bool.
@@ -44,6 +45,8 @@ def lookahead(
     ``dynamics`` is a :class:`~ldm_rl.world_model.DynamicsModel`; ``value_network`` maps
     (heightmap, in_hand) to ``[M, 1]`` values (or ``[M, K]``: K scores per state, e.g. under two sets of
     weights, giving ``values`` ``[B, N, K]``; a plain callable runs in the mode its caller set) and offers ``value_and_reward`` when ``with_reward``.
+    ``dynamics_autocast``: the LDM predicts under bf16 autocast (the paper preset's heavy convolutions;
+    measured slower for the lite preset), V still scores in float32.
     """
     if not torch.is_tensor(candidates) or candidates.dim() != 3 or candidates.shape[-1] != 3:
         shape = tuple(candidates.shape) if torch.is_tensor(candidates) else type(candidates).__name__
@@ -60,17 +63,18 @@ def lookahead(
     with eval_mode(*(m for m in (dynamics, value_network) if isinstance(m, nn.Module))):
         for start in range(0, b * n, chunk_size):
             rows = owner[start : start + chunk_size]
-            pred = dynamics.predict(
-                heightmap.index_select(0, rows),
-                in_hand.index_select(0, rows),
-                holding.index_select(0, rows),
-                flat_actions[start : start + chunk_size],
-            )
+            with torch.autocast(heightmap.device.type, dtype=torch.bfloat16, enabled=dynamics_autocast):
+                pred = dynamics.predict(
+                    heightmap.index_select(0, rows),
+                    in_hand.index_select(0, rows),
+                    holding.index_select(0, rows),
+                    flat_actions[start : start + chunk_size],
+                )
             if with_reward:
-                value, reward = value_network.value_and_reward(pred.heightmap, pred.in_hand)
+                value, reward = value_network.value_and_reward(pred.heightmap.float(), pred.in_hand.float())
                 rewards.append(reward.reshape(-1))
             else:
-                value = value_network(pred.heightmap, pred.in_hand)
+                value = value_network(pred.heightmap.float(), pred.in_hand.float())
             values.append(value.reshape(value.shape[0], -1))
             next_holding.append(pred.holding.reshape(-1))
     values = torch.cat(values)
