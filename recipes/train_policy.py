@@ -202,7 +202,11 @@ def train(cfg: DictConfig) -> dict:
                 replay.extend_episode(episode)
                 counters["episodes"] += 1
                 recent.append(float(bool(step["next", "terminated"]) and float(step["next", "reward"]) > 0))
-                bar.set_postfix(updates=agent.updates, success_last100=f"{sum(recent) / len(recent):.2f}", refresh=False)
+                # the bar's ETA counts episodes; with a wall-clock budget the budget usually ends the run first
+                budget = {} if s.max_wall_clock_s is None else {
+                    "budget_left": f"{max(0.0, float(s.max_wall_clock_s) - (time.perf_counter() - start)) / 60:.0f} min"}
+                bar.set_postfix(updates=agent.updates, success_last100=f"{sum(recent) / len(recent):.2f}", **budget,
+                                refresh=False)
                 bar.update(1)
             for _ in range(int(s.updates_per_step)):
                 batch = replay.sample()
