@@ -373,7 +373,8 @@ def plot_decision(heightmap, q_map, candidates, values, chosen, path: str | Path
     from matplotlib import patheffects
 
     panels = 1 + (q is not None) + (cands is not None)
-    fig = _figure(4.3 * panels + 0.3, 4.4)
+    fig = _figure(4.5 * panels + 0.3, 4.4)
+    fig.get_layout_engine().set(w_pad=0.25)  # room between a colour bar's label and the next panel's axis label
     axes = list(np.atleast_1d(fig.subplots(1, panels)))
     maps = [(axes.pop(0), "heightmap", h)]
     if q is not None:
