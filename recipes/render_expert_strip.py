@@ -13,10 +13,13 @@ The title names the task, the object count, the steps and the outcome. Drawn by
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
+
+from ldm_rl.config_schema import check_command_line  # registers the schema
 
 log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[1]
@@ -61,4 +64,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    sys.argv = check_command_line(__file__)
     main()

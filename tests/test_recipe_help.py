@@ -1,0 +1,115 @@
+"""``python recipes/<name>.py --help`` (ldm_rl.recipe_help): what the recipe does and writes first, then only
+the config groups it reads, then its primary config's keys with their comments; exit code 0."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from ldm_rl.recipe_help import READS, recipe_help
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+HYDRA_RECIPES = sorted(p.stem for p in (ROOT / "recipes").glob("*.py") if "@hydra.main" in p.read_text())
+
+# recipe: (a phrase of its header, the groups it reads, a comment line of its primary config)
+EXPECTED = {
+    "train_dynamics": ("trains the dynamics model", {"env", "model", "loss", "logger", "demos", "dynamics", "experiment"},
+                       "# auto = cuda when available, else cpu"),
+    "generate_demos": ("collects scripted-expert demonstrations", {"env", "demos"}, "# auto = cuda when available, else cpu"),
+    "render_expert_strip": ("draws it as a PNG", {"env", "demos"}, "# auto = cuda when available, else cpu"),
+    "train_policy": ("trains an agent online",
+                     {"env", "model", "loss", "agent", "planner", "replay", "schedule", "logger", "experiment"},
+                     "# how training steps are collected"),
+    "evaluate": ("plays a checkpoint's greedy policy", {"+experiment"}, "# greedy episodes to play"),
+}
+ALL_GROUPS = {p.name for p in CONF.iterdir() if p.is_dir()}
+
+
+def run_help(stem, *args):
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    return subprocess.run([sys.executable, str(ROOT / "recipes" / f"{stem}.py"), *args], capture_output=True, text=True,
+                          timeout=120, env=env, cwd=ROOT)
+
+
+def groups_section(text):
+    """``{group: options line}`` of the 'Config groups it reads' section."""
+    match = re.search(r"^Config groups it reads.*\n((?:  .*\n)+)", text, re.M)
+    if match is None:
+        return {}
+    return {m.group(1): m.group(2) for m in re.finditer(r"^  (\+?\w+):\s+(.*)$", match.group(1), re.M)}
+
+
+def test_every_hydra_recipe_is_checked():
+    assert set(HYDRA_RECIPES) == set(EXPECTED)
+
+
+@pytest.mark.parametrize("stem", sorted(EXPECTED))
+def test_help_says_what_the_recipe_does_and_lists_only_its_groups(stem):
+    phrase, groups, comment = EXPECTED[stem]
+    done = run_help(stem, "--help")
+    assert done.returncode == 0, done.stderr
+    text = done.stdout
+    header = text.split("\nUsage:")[0]
+    assert text.startswith(f"recipes/{stem}.py ") and phrase in " ".join(header.splitlines()[:3]), header
+    assert re.search(r"\bwrites\b", header, re.I), f"the header of {stem} does not say what it writes"
+    assert "python recipes/" + stem + ".py " in header  # an example command
+    listed = groups_section(text)
+    assert set(listed) == groups, listed
+    for group in ALL_GROUPS - {g.lstrip("+") for g in groups}:
+        assert not re.search(rf"\b{group}[=/]", text), f"{stem} --help mentions the group {group!r} it does not read"
+    if stem in ("train_dynamics", "generate_demos", "render_expert_strip"):
+        assert "planner" not in text and "agent" not in text
+    for group in groups - {"experiment", "+experiment"}:  # every option named, the default marked
+        options = sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+        assert listed[group].replace("*", "").split(", ") == options
+        assert listed[group].count("*") == 1
+    presets = [name for name in sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+               if f"recipes/{stem}.py" in (CONF / "experiment" / f"{name}.yaml").read_text()]
+    for name in presets:
+        assert name in text
+    if stem == "train_dynamics":
+        assert presets and all(p.startswith("table1_") for p in presets)
+        assert "curves_" not in text and "generalization_" not in text
+    assert comment in text  # the primary config's key docs
+    assert "DESIGN.md" not in text and "../shared" not in text
+    assert "README.md" in text and "docs/" in text
+
+
+def test_reads_matches_what_the_recipes_read():
+    """READS narrows a shared config's groups to the ones the recipe's code reads (``cfg.<group>``)."""
+    for stem, groups in READS.items():
+        source = (ROOT / "recipes" / f"{stem}.py").read_text()
+        primary = re.search(r'config_name="(\w+)"', source).group(1)
+        defaults = OmegaConf.to_container(OmegaConf.load(CONF / f"{primary}.yaml"))["defaults"]
+        candidates = {str(k).split()[-1] for d in defaults if isinstance(d, dict) for k in d} - {"schema", "experiment"}
+        used = {g for g in candidates if re.search(rf"\bcfg\.{g}\b", source)}
+        assert used == set(groups), (stem, used, groups)
+
+
+def test_chosen_option_and_user_config_dir(tmp_path):
+    (tmp_path / "env").mkdir()
+    (tmp_path / "env" / "my_table.yaml").write_text("# my own table\nid: ldm_rl/BlockStacking-v0\n")
+    text = recipe_help(str(ROOT / "recipes" / "train_dynamics.py"), config_dir=str(tmp_path),
+                       overrides=["env=house_building", "seed=3"], checkpoint_name="checkpoint.pt")
+    listed = groups_section(text)
+    assert "my_table" in listed["env"] and "block_stacking*" in listed["env"]
+    assert "Keys of env=house_building (conf/env/house_building.yaml" in text
+    assert "env=block_stacking" not in text
+    assert "resume=true hydra.run.dir=DIR" in text
+
+
+def test_other_hydra_flags_still_reach_hydra():
+    done = run_help("train_dynamics", "--hydra-help")
+    assert done.returncode == 0, done.stderr
+    assert "Hydra (" in done.stdout and "hydra/launcher" in done.stdout
+
+
+def test_unknown_config_name_is_one_line_error():
+    done = run_help("train_dynamics", "--config-name", "nope", "--help")
+    assert done.returncode == 2
+    assert done.stderr.strip().count("\n") == 0 and done.stderr.startswith("error: --config-name nope")
