@@ -43,7 +43,7 @@ __all__ = ["BACKENDS", "LAUNCHERS", "DEFAULTS", "TaskEnvFactory", "make_collecto
            "shutdown_collector", "EpisodeAssembler", "ScheduleSyncedPolicy", "worker_seed", "WORKER_KEY", "TRAJ_KEY"]
 
 BACKENDS = ("process", "distributed")
-LAUNCHERS = ("mp", "submitit", "submitit_delayed")
+LAUNCHERS = ("mp", "submitit")  # TorchRL's submitit_delayed needs a wrapped entry point, which the recipe is not
 # per frame: the worker that collected it (index in the batch) and TorchRL's trajectory id
 WORKER_KEY = ("collector", "worker")
 TRAJ_KEY = ("collector", "traj_ids")

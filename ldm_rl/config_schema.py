@@ -461,7 +461,7 @@ class CollectorConfig:
     sync: bool = True
     frames_per_worker: int = spec(1, ge=1, doc="steps each worker collects between weight refreshes")
     backend: str = spec("process", choices=("process", "distributed"), doc="worker processes here | DistributedCollector")
-    launcher: str = spec("mp", choices=("mp", "submitit", "submitit_delayed"), doc="how backend=distributed starts workers")
+    launcher: str = spec("mp", choices=("mp", "submitit"), doc="how backend=distributed starts workers")
     tcp_port: Optional[int] = spec(None, ge=1, le=65535, doc="backend=distributed rendezvous port")
     slurm: typing.Dict[str, Any] = field(default_factory=dict)
 

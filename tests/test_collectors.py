@@ -85,7 +85,7 @@ def smoke_planner():
     ({"num_workers": 0}, "collector.num_workers must be a positive int, got 0"),
     ({"frames_per_worker": 1.5}, "collector.frames_per_worker must be a positive int, got 1.5"),
     ({"backend": "ray"}, "collector.backend must be one of ('process', 'distributed'), got 'ray'"),
-    ({"launcher": "k8s"}, "collector.launcher must be one of ('mp', 'submitit', 'submitit_delayed'), got 'k8s'"),
+    ({"launcher": "k8s"}, "collector.launcher must be one of ('mp', 'submitit'), got 'k8s'"),
     ({"workers": 2}, "collector settings ['workers'] are unknown"),
     ({"backend": "distributed", "sync": False}, "collector.sync=false needs collector.backend=process"),
 ])
