@@ -232,7 +232,7 @@ def test_distributed_collector_on_localhost_refreshes_worker_weights():
 def test_distributed_collector_through_submitit_runs_the_ldm_planner(tmp_path, monkeypatch):
     """The multi-machine path: DistributedCollector with launcher=submitit (a SLURM job per worker on a
     cluster; submitit runs the job locally here, where there is no SLURM), one worker, a few frames."""
-    pytest.importorskip("submitit", reason="submitit is not installed (pip install 'ldm_rl[distributed]')")
+    pytest.importorskip("submitit", reason="submitit is not installed (pip install 'ldm_rl[sweep]')")
     monkeypatch.chdir(tmp_path)  # TorchRL writes submitit's logs to ./log_test
     planner = smoke_planner()
     cfg = {"num_workers": 1, "backend": "distributed", "launcher": "submitit", "tcp_port": free_port(),
