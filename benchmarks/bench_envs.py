@@ -7,15 +7,29 @@ Per case: mean CPU ms (``time.process_time``) per reset / pick / place with expe
 noiseless expert success over K seeded episodes (seeds 0..K-1), and the success under the
 default demo noise (conf/demos/default.yaml); then the deconstruct-and-replay procedure's success
 (stacking, house) and the process RSS before/after N resets.
-The anchor's figures (BulletArm, same kind of 2-core machine) are printed beside ours.
+
+With ``--anchor PATH`` (a BulletArm checkout, github.com/ColinKohler/BulletArm, with its requirements
+importable, e.g. scikit-image) the anchor's reset / pick / place CPU ms and expert success are measured in
+the same run, same protocol, by ``benchmarks/anchor_envs.py`` in a child process, and printed beside ours;
+without it the anchor columns read "not measured in this run".
+
+    python benchmarks/bench_envs.py --episodes 10 --cases stack3 house --anchor ~/src/BulletArm
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/anchor_envs.py
+
+from anchor_envs import check_checkout  # noqa: E402
 
 CASES = {
     "stack3": ("ldm_rl/BlockStacking-v0", 3),
@@ -26,11 +40,6 @@ CASES = {
     "bottles5": ("ldm_rl/BottleArrangement-v0", 5),
     "bottles6": ("ldm_rl/BottleArrangement-v0", 6),
     "bins8": ("ldm_rl/BinPacking-v0", 8),
-}
-# anchor CPU ms per call: reset, pick, place (anchor-environments.md §5)
-ANCHOR = {
-    "stack3": "21-40 / 144 / 87", "stack5": "42 / 179 / 107", "house": "48 / 142 / 92",
-    "bottles6": "80-154 / 296-305 / 190-197", "bins8": "100-361 / 293-321 / 160-277",
 }
 DEFAULT_NOISE = {"position": 0.01, "random_action_prob": 0.05}
 
@@ -72,6 +81,20 @@ def run_case(env_id: str, num_objects: int, episodes: int, noise: dict | None):
     return successes / episodes, ms, float(np.mean(lengths))
 
 
+def run_anchor(path: Path, case: str, episodes: int) -> tuple[str, str]:
+    """(anchor 'reset / pick / place' ms, anchor expert success) measured now in a child process,
+    or ('not measured in this run: <reason>', '-') if the anchor fails there."""
+    script = Path(__file__).resolve().parent / "anchor_envs.py"
+    result = subprocess.run([sys.executable, str(script), str(path), case, "--episodes", str(episodes)],
+                            capture_output=True, text=True)
+    lines = result.stdout.strip().splitlines()
+    if result.returncode != 0 or not lines:
+        reason = (result.stderr.strip().splitlines() or [f"exit status {result.returncode}"])[-1]
+        return f"not measured in this run: {reason}", "-"
+    m = json.loads(lines[-1])
+    return f"{m['reset_ms']:.1f} / {m['pick_ms']:.1f} / {m['place_ms']:.1f}", f"{m['success']:.1%}"
+
+
 def deconstruct_rate(env_id: str, num_objects: int, episodes: int) -> tuple[float, int]:
     """(success rate of the replayed episodes, number of discarded deconstructions)."""
     import gymnasium as gym
@@ -110,21 +133,38 @@ def main() -> None:
     parser.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
     parser.add_argument("--resets", type=int, default=1000, help="resets for the memory check (0 skips it)")
     parser.add_argument("--no-noise", action="store_true", help="skip the noisy-expert runs")
+    parser.add_argument("--anchor", metavar="PATH", help="BulletArm checkout: measure the anchor in this run too")
     args = parser.parse_args()
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    anchor = None
+    if args.anchor:
+        try:
+            anchor = check_checkout(args.anchor)
+        except ValueError as err:
+            parser.error(str(err))
 
     import torch
 
     torch.set_num_threads(1)
-    header = (f"| case | reset ms | pick ms | place ms | anchor reset/pick/place ms | expert success "
-              f"(K={args.episodes}) | steps | success, default noise |")
+    if anchor is None:
+        print("anchor (BulletArm): not measured in this run (pass --anchor PATH to a BulletArm checkout)\n")
+    else:
+        print(f"anchor (BulletArm) measured in this run from {anchor}, same protocol, its own seed-0 RNG\n")
+    header = (f"| case | reset ms | pick ms | place ms | expert success (K={args.episodes}) | steps "
+              f"| success, default noise | anchor reset / pick / place ms | anchor expert success |")
     print(header)
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name in args.cases:
         env_id, n = CASES[name]
         rate, ms, steps = run_case(env_id, n, args.episodes, None)
         noisy = "-" if args.no_noise else f"{run_case(env_id, n, args.episodes, DEFAULT_NOISE)[0]:.1%}"
-        print(f"| {name} | {ms['reset']:.1f} | {ms['pick']:.1f} | {ms['place']:.1f} | {ANCHOR.get(name, '-')} "
-              f"| {rate:.1%} | {steps:.1f} | {noisy} |", flush=True)
+        if anchor is None:
+            anchor_ms, anchor_rate = "not measured in this run", "-"
+        else:
+            anchor_ms, anchor_rate = run_anchor(anchor, name, args.episodes)
+        print(f"| {name} | {ms['reset']:.1f} | {ms['pick']:.1f} | {ms['place']:.1f} | {rate:.1%} | {steps:.1f} "
+              f"| {noisy} | {anchor_ms} | {anchor_rate} |", flush=True)
     deconstructable = [c for c in args.cases if c.startswith(("stack", "house"))]
     if deconstructable:
         print(f"\n| case | deconstruct + reversed replay success (K={args.episodes}) | discarded |\n|---|---|---|")

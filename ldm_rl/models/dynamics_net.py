@@ -31,9 +31,10 @@ def encode_depth_inputs(frame_classes: torch.Tensor, hand_classes: torch.Tensor,
     lo = size // 2 - hand // 2
     pad = (lo, size - hand - lo, lo, size - hand - lo)
     padded_hand = F.pad(hand_classes.long(), pad, value=0)
-    planes = torch.cat((frame_classes.long(), padded_hand), dim=1)  # [B, 2, S, S]
-    one_hot = F.one_hot(planes, num_classes)  # [B, 2, S, S, K]
-    return one_hot.permute(0, 1, 4, 2, 3).flatten(1, 2).float()
+    planes = torch.cat((frame_classes.long(), padded_hand + num_classes), dim=1)  # [B, 2, S, S] plane index
+    # scatter the ones straight into the float planes (no int64 one-hot, no permuted copy)
+    out = torch.zeros(planes.shape[0], 2 * num_classes, size, size, device=planes.device)
+    return out.scatter_(1, planes, 1.0)
 
 
 class TwoHeadDynamicsNet(nn.Module):
@@ -60,18 +61,24 @@ class TwoHeadDynamicsNet(nn.Module):
         extra: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """[B,1,S,S] int, [B,1,h,h] int, [B] bool, optional [B,E,S,S] float -> [B, K, S, S] logits."""
-        x = encode_depth_inputs(frame_classes, hand_classes, self.num_classes)
-        if self.extra_channels:
-            if extra is None or extra.shape[1] != self.extra_channels:
-                raise ValueError(f"extra must be [B, {self.extra_channels}, S, S], got {None if extra is None else tuple(extra.shape)}")
-            x = torch.cat((x, extra.to(x.dtype)), dim=1)
+        if self.extra_channels and (extra is None or extra.shape[1] != self.extra_channels):
+            raise ValueError(f"extra must be [B, {self.extra_channels}, S, S], got {None if extra is None else tuple(extra.shape)}")
         holding = holding.reshape(-1).bool()
-        out = None
-        for head, rows in ((self.pick, (~holding).nonzero().squeeze(1)), (self.place, holding.nonzero().squeeze(1))):
-            if rows.numel() == 0:
-                continue
-            logits = head(x.index_select(0, rows))
-            if out is None:
-                out = logits.new_zeros((x.shape[0], *logits.shape[1:]))
-            out = out.index_copy(0, rows, logits)
-        return out
+        n = frame_classes.shape[0]
+        routes = [(head, rows) for head, rows in ((self.pick, (~holding).nonzero().squeeze(1)), (self.place, holding.nonzero().squeeze(1)))
+                  if rows.numel()]
+        if not routes:  # empty batch
+            size = frame_classes.shape[-1]
+            return torch.zeros(0, self.num_classes, size, size, device=frame_classes.device)
+        if len(routes) == 1:  # one head for the whole batch: no gathers, no reordering
+            x = encode_depth_inputs(frame_classes, hand_classes, self.num_classes)
+            return routes[0][0](torch.cat((x, extra.to(x.dtype)), dim=1) if self.extra_channels else x)
+        outputs = []
+        for head, rows in routes:  # encode each head's samples from their (uint8) classes: no float-plane gathers
+            x = encode_depth_inputs(frame_classes.index_select(0, rows), hand_classes.index_select(0, rows), self.num_classes)
+            if self.extra_channels:
+                x = torch.cat((x, extra.index_select(0, rows).to(x.dtype)), dim=1)
+            outputs.append(head(x))
+        order = torch.cat([rows for _, rows in routes])  # input sample of each row of cat(outputs)
+        inverse = torch.empty_like(order).scatter_(0, order, torch.arange(n, device=order.device))
+        return torch.cat(outputs).index_select(0, inverse)

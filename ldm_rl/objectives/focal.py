@@ -43,8 +43,8 @@ def focal_loss(
         raise ValueError(f"target classes must lie in [0, {k}), got [{int(target.min())}, {int(target.max())}]")
     log_p = F.log_softmax(logits.float(), dim=1)
     log_p_t = log_p.gather(1, target.unsqueeze(1)).squeeze(1)
-    if gamma == 0 and label_smoothing == 0:
-        per_px = -log_p_t
+    if label_smoothing == 0:  # only the target class contributes: modulate [N, *S], not [N, K, *S]
+        per_px = -log_p_t if gamma == 0 else -((1 - log_p_t.exp()).clamp_min(0).pow(gamma) * log_p_t)
     else:
         modulation = (1 - log_p.exp()).clamp_min(0).pow(gamma)
         smooth_term = -(modulation * log_p).sum(1) * (label_smoothing / k)

@@ -11,7 +11,7 @@ from torchrl.objectives import LossModule
 
 from ldm_rl.keys import ACTION, HEIGHTMAP, HOLDING, IN_HAND, NEXT_LOGITS, next_key, require_keys
 from ldm_rl.objectives.focal import depth_class_weights, focal_loss
-from ldm_rl.world_model.core import DynamicsModel, validate_state_action
+from ldm_rl.world_model.core import DynamicsModel, channel_argmax, validate_state_action
 
 __all__ = ["LDMLoss"]
 
@@ -114,7 +114,7 @@ class LDMLoss(LossModule):
             logits, target, gamma=self.gamma, weight=self.class_weights(), label_smoothing=self.label_smoothing
         )
         with torch.no_grad():
-            correct = logits.argmax(1) == target
+            correct = channel_argmax(logits) == target
             changed = target != before
             changed_acc = (correct & changed).sum() / changed.sum().clamp_min(1)
         return TensorDict(
