@@ -453,9 +453,10 @@ class RunStopped(Exception):
     to outputs/.../checkpoint.pt``; ``exit_code`` is the shell's 128 + signal number.
     """
 
-    def __init__(self, signal_name: str, iteration: int, total: int, checkpoint: str | os.PathLike) -> None:
+    def __init__(self, signal_name: str, iteration: int, total: int, checkpoint: str | os.PathLike, *,
+                 unit: str = "iteration") -> None:
         self.signal_name, self.iteration, self.total, self.checkpoint = signal_name, iteration, total, Path(checkpoint)
-        super().__init__(f"stopped by {signal_name} at iteration {iteration}/{total}; checkpoint saved to {self.checkpoint}")
+        super().__init__(f"stopped by {signal_name} at {unit} {iteration}/{total}; checkpoint saved to {self.checkpoint}")
 
     @property
     def exit_code(self) -> int:

@@ -11,7 +11,9 @@ episodes into prioritized replay → ``schedule.updates_per_step`` agent updates
 written back, β annealed) → every ``schedule.eval_every`` updates the greedy policy plays
 ``schedule.eval_episodes`` episodes on a separate env. Writes to the run folder: ``curve.csv`` (success
 against episodes, env steps, updates and wall-clock), ``learning_curve.png``, ``checkpoint.pt`` (every
-``schedule.checkpoint_every`` updates, at the end of an episode, and at the end), ``final_metrics.json``,
+``schedule.checkpoint_every`` updates, at the end of an episode, and at the end), ``best_policy.pt``
+(``schedule.keep_best``: the weights of the best in-training evaluation, scored again at the end on
+held-out scenes under ``best`` in ``final_metrics.json``), ``final_metrics.json``,
 the logger's scalars (``logger=csv|tensorboard|wandb|mlflow|none``: losses, learning rates,
 ``train/env_steps_per_s``, ``train/updates_per_s``, ``eval/success_rate``...; docs/logging.md),
 ``config_resolved.yaml`` and ``train_policy.log`` (what the console showed). ``schedule.progress``: bars
@@ -36,6 +38,7 @@ TRANSITION_KEYS = ("heightmap", "in_hand", "holding", "action",
                    ("next", "heightmap"), ("next", "in_hand"), ("next", "holding"), ("next", "reward"),
                    ("next", "done"), ("next", "terminated"), ("next", "truncated"))
 log = logging.getLogger("train_policy")
+BEST_NAME = "best_policy.pt"
 CURVE_FIELDS = ("updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length")
 
 
@@ -121,6 +124,7 @@ def train(cfg: DictConfig) -> dict:
     max_height = float(cfg.env.max_height)
     agent = build_agent(cfg, max_height).to(device)
     replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=int(cfg.model.num_depth_classes),
+                         return_gamma=float(cfg.agent.gamma) if cfg.agent.return_lower_bound else None,
                          batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),
                          priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus),
                          scratch_dir=cfg.replay.scratch_dir)
@@ -136,11 +140,16 @@ def train(cfg: DictConfig) -> dict:
     meta = {"kind": "agent", "agent": agent.name, "preset": str(cfg.agent.preset or cfg.model.preset), "task": cfg.env.id,
             "config": OmegaConf.to_container(cfg, resolve=True)}
 
+    best = {"success_rate": -1.0}  # the best in-training evaluation so far (schedule.keep_best)
+
     def evaluate(episodes: int) -> dict:
         result = evaluate_policy(eval_env, agent.policy, episodes, seed=int(cfg.seed) + 1_000_000, progress=bool(s.progress))
         scores = {("eval_episodes" if key == "episodes" else key): value for key, value in result.as_dict().items()}
         row = {"updates": agent.updates, **counters, "wall_s": time.perf_counter() - start, **scores}
         curve.append(row)
+        if s.keep_best and row["success_rate"] > best["success_rate"]:  # the earliest of equal scores stays
+            best.update(row)
+            save_checkpoint(out_dir / BEST_NAME, {"agent": agent.state_dict(), "evaluation": row}, meta=meta)
         write_curve(curve, out_dir, f"{agent.name} agent, {task}, seed {cfg.seed}")
         if logger is not None:
             logger.log_metrics({f"eval/{key}": row[key] for key in ("success_rate", "ci_low", "ci_high", "mean_length")},
@@ -157,7 +166,7 @@ def train(cfg: DictConfig) -> dict:
         replay_dir = f"replay-{agent.updates:09d}"
         replay.dumps(out_dir / replay_dir)
         state = {"agent": agent.state_dict(), "training": agent.training_state(), "counters": dict(counters),
-                 "curve": curve, "recent": list(recent), "wall_s": time.perf_counter() - start,
+                 "curve": curve, "recent": list(recent), "wall_s": time.perf_counter() - start, "best": dict(best),
                  "rng": capture_rng_state({"replay": replay.generator}), "replay_dir": replay_dir}
         save_checkpoint(checkpoint_path, state, meta=meta)
         for old in out_dir.glob("replay-*"):
@@ -174,6 +183,7 @@ def train(cfg: DictConfig) -> dict:
             counters.update(checkpoint.state["counters"])
             curve.extend(checkpoint.state["curve"])
             recent.extend(checkpoint.state["recent"])
+            best.update(checkpoint.state.get("best", {}))
             start -= float(checkpoint.state["wall_s"])
             env_factory.start_episode = counters["episodes"]
             log.info(f"resumed {out_dir} at {counters['episodes']} episodes, {agent.updates} updates")
@@ -233,16 +243,26 @@ def train(cfg: DictConfig) -> dict:
             if stop.requested:
                 shutdown_collector(collector)
                 bar.close()
-                raise RunStopped(stop.signal_name, counters["episodes"], int(s.total_episodes), checkpoint_path)
+                raise RunStopped(stop.signal_name, counters["episodes"], int(s.total_episodes), checkpoint_path,
+                                 unit="episode")
             if finished:
                 break
     bar.close()
     shutdown_collector(collector)
     final = evaluate(int(s.final_eval_episodes))
-    close_logger(logger)
     summary = {"agent": agent.name, "task": cfg.env.id, "num_objects": int(cfg.env.num_objects), "seed": int(cfg.seed),
                "preset": str(cfg.agent.preset or cfg.model.preset), **{k: final[k] for k in CURVE_FIELDS},
                "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}
+    if s.keep_best and (out_dir / BEST_NAME).exists():
+        # the selected weights on scenes the selection never saw (evaluate.py's seed), not on the curve's
+        agent.load_state_dict(load_checkpoint(out_dir / BEST_NAME, map_location=device).state["agent"])
+        result = evaluate_policy(eval_env, agent.policy, int(s.final_eval_episodes), seed=int(cfg.seed) + 2_000_000,
+                                 progress=bool(s.progress))
+        summary["best"] = {"selected_at": {k: best[k] for k in ("updates", "episodes", "env_steps", "wall_s", "success_rate")},
+                           **{("eval_episodes" if k == "episodes" else k): v for k, v in result.as_dict().items()}}
+        log.info(f"best in-training evaluation ({100 * best['success_rate']:.0f}% at {best['updates']} updates, "
+                 f"{best['wall_s'] / 60:.1f} min) -> {BEST_NAME}: {result} on held-out scenes")
+    close_logger(logger)
     atomic_write_text(out_dir / "final_metrics.json", json.dumps(summary, indent=2))
     log.info(f"done: greedy success {100 * final['success_rate']:.1f}% over {final['eval_episodes']} episodes "
              f"after {counters['episodes']} episodes / {final['wall_s'] / 60:.1f} min -> {out_dir}")

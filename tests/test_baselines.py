@@ -128,6 +128,18 @@ def test_dqn_targets_terminal_rows_priorities_and_the_hard_update():
     assert agent.updates == 2 and agent.policy.step == 2
 
 
+@pytest.mark.parametrize("name", ["fcdqn", "dynaq"])
+def test_dqn_return_lower_bound_raises_the_target_and_imagined_rows_get_none(name):
+    plain = make_agent(name, "agent.gamma=0.9")
+    bounded = make_agent(name, "agent.gamma=0.9", "agent.return_lower_bound=true")
+    data = batch(4)
+    data["return_to_go"] = torch.tensor([[5.0], [-5.0], [float("-inf")], [0.5]])
+    torch.testing.assert_close(bounded.loss.targets(data), torch.maximum(plain.loss.targets(data), data["return_to_go"]))
+    if name == "dynaq":  # the update runs with the bound (imagined rows carry -inf) and writes the real rows' priorities
+        bounded.update(data)
+        assert data["td_error"].shape == (4,) and torch.isfinite(data["td_error"]).all()
+
+
 def test_fcdqn_pretraining_trains_nothing_and_update_writes_priorities():
     agent = make_agent("fcdqn")
     weights = {k: v.clone() for k, v in agent.state_dict().items()}
@@ -333,6 +345,7 @@ def test_every_baseline_config_validates_and_names_its_agent(name):
         ("rs", "agent.object_dilation=null", r"agent.object_dilation is null: agent=rs needs it"),
         ("fcdqn", "agent.imagined_ratio=1", r"agent.imagined_ratio=1(\.0)? is set but only agent=dynaq uses it"),
         ("rs", "agent.object_height_threshold=0", r"agent.object_height_threshold=0(\.0)? is out of range"),
+        ("rs", "agent.return_lower_bound=true", r"agent.return_lower_bound=true: agent=rs has no such option"),
     ],
 )
 def test_bad_baseline_config_is_one_clear_error(agent, override, message):

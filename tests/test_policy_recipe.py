@@ -39,12 +39,18 @@ def test_smoke_run_writes_curve_checkpoint_and_metrics(smoke_run):
     assert curve[0].startswith("updates,episodes,env_steps,wall_s,success_rate") and len(curve) >= 3
     assert (out / "learning_curve.png").stat().st_size > 10_000
     assert "done: greedy success" in proc.stdout
+    # checkpoint selection: the earliest best in-training evaluation, re-scored on held-out scenes
+    rows = [dict(zip(curve[0].split(","), line.split(","))) for line in curve[1:-1]]  # the last row is the final one
+    rates = [float(row["success_rate"]) for row in rows]
+    first_best = rows[rates.index(max(rates))]
+    assert final["best"]["selected_at"]["updates"] == int(first_best["updates"])
+    assert final["best"]["eval_episodes"] == 2 and (out / "best_policy.pt").exists()
 
 
 @pytest.mark.slow
 def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     out, _ = smoke_run
-    proc = run("evaluate.py", f"checkpoint={out / 'checkpoint.pt'}", "episodes=2", "num_objects=4", "progress=false",
+    proc = run("evaluate.py", f"checkpoint={out / 'best_policy.pt'}", "episodes=2", "num_objects=4", "progress=false",
                f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads((tmp_path / "evaluation.json").read_text())
@@ -130,5 +136,5 @@ def test_sigterm_saves_and_exits_with_one_line(tmp_path):
     _, stderr = proc.communicate(timeout=600)
     assert proc.returncode == 143
     last = stderr.strip().splitlines()[-1]
-    assert last.startswith("stopped by SIGTERM at iteration") and "resume=true" in last
+    assert last.startswith("stopped by SIGTERM at episode") and "resume=true" in last
     assert (run_dir / "checkpoint.pt").exists() and len(list(run_dir.glob("replay-*"))) == 1

@@ -527,3 +527,40 @@ def test_bytes_per_transition_and_sample_time():
     print(f"sample(32): {ms:.2f} ms")
     assert ms < 100  # a few ms on the 2-core CI box; generous bound against load spikes
     assert replay.FrameReplay is FrameReplay
+
+
+def test_return_to_go_is_the_discounted_return_of_terminated_episodes_only():
+    rb = make_buffer(64, return_gamma=0.5)
+    rb.extend_episode(make_episode(1, 3))  # rewards 100, 101, 102 at steps 0, 1, 2
+    rb.extend_episode(make_episode(2, 2, end="truncated"))
+    column = stored(rb)["return_to_go"].reshape(-1)
+    expected = torch.tensor([100 + 0.5 * 101 + 0.25 * 102, 101 + 0.5 * 102, 102.0, -math.inf, -math.inf, -math.inf, -math.inf])
+    assert torch.allclose(column[:7], expected)
+    batch = rb.sample(64)
+    ep, step = decode_ids(batch["heightmap"])
+    for e, t, value in zip(ep.tolist(), step.tolist(), batch["return_to_go"].reshape(-1).tolist()):
+        assert value == pytest.approx(expected[t].item() if e == 1 else -math.inf)
+
+
+def test_buffer_without_return_gamma_has_no_return_column():
+    rb = make_buffer(64)
+    rb.extend_episode(make_episode(1, 3))
+    assert "return_to_go" not in stored(rb).keys() and "return_to_go" not in rb.sample(4).keys()
+    with pytest.raises(ValueError, match="return_gamma must be None or a discount in"):
+        make_buffer(64, return_gamma=1.5)
+
+
+def test_dumps_writes_only_the_stored_frames_and_checks_return_gamma(tmp_path):
+    rb = make_buffer(10_000, return_gamma=0.9)
+    for ep_id in range(3):
+        rb.extend_episode(make_episode(ep_id, 4))
+    rb.dumps(tmp_path / "ckpt")
+    size = sum(f.stat().st_size for f in (tmp_path / "ckpt").rglob("*") if f.is_file())
+    # 15 frames of ~17 KB plus the sampler's trees (8 bytes per slot): far from 10 000 frames (170 MB)
+    assert size < 15 * 17_500 + 10_000 * 16 + 50_000, size
+    again = make_buffer(10_000, seed=3, return_gamma=0.9)
+    again.loads(tmp_path / "ckpt")
+    _assert_same_state(rb, again)
+    assert torch.equal(stored(rb)["return_to_go"], stored(again)["return_to_go"])
+    with pytest.raises(ValueError, match="return_gamma=0.9 but this buffer has return_gamma=None"):
+        make_buffer(10_000).loads(tmp_path / "ckpt")

@@ -145,3 +145,19 @@ def test_bf16_autocast_gives_float32_targets_close_to_float32_and_trainable_loss
     assert torch.isfinite(total) and total.requires_grad
     total.backward()
     assert all(p.grad is not None for p in loss.q_network.parameters() if p.requires_grad)
+
+
+@pytest.mark.parametrize("q_target", ["max", "lookahead"])
+def test_return_lower_bound_raises_both_targets_to_the_collected_return(q_target):
+    plain, bounded = make_loss(q_target=q_target), make_loss(q_target=q_target, return_lower_bound=True)
+    batch = transitions(4, terminated=torch.tensor([[False], [False], [True], [False]]))
+    q_plain, v_plain = plain.targets(batch)
+    # one bound far above, one far below, one -inf (truncated episode), one on a terminal row
+    batch.set("return_to_go", torch.tensor([[0.97], [-0.5], [float("-inf")], [0.99]]))
+    q_bound, v_bound = bounded.targets(batch)
+    expected_v = torch.maximum(v_plain, batch["return_to_go"])
+    torch.testing.assert_close(v_bound, expected_v)
+    torch.testing.assert_close(q_bound, torch.maximum(q_plain, batch["return_to_go"]))
+    assert v_bound[0] > v_plain[0] and torch.equal(v_bound[1:3], v_plain[1:3])
+    with pytest.raises(KeyError, match="needs 'return_to_go' in the batch: sample from FrameReplay"):
+        bounded.targets(transitions(2))

@@ -52,6 +52,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         target_range=agent_cfg.get("target_range"),
         double_value=bool(agent_cfg.get("double_value", False)),
         q_target=str(agent_cfg.get("q_target", "max")),
+        return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)),
     )
     loss_cfg = _plain(cfg["loss"])
     class_weights = loss_cfg.get("class_weights")
@@ -123,7 +124,8 @@ def build_fcdqn_agent(cfg: Mapping[str, Any], max_height: float):
     agent_cfg = _plain(cfg["agent"])
     q_network = _q_network(cfg, agent_cfg, max_height)
     policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
-    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]))
+    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]),
+                          return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)))
     return FCDQNAgent(policy, loss, q_grad_clip=agent_cfg.get("q_grad_clip"), **_optimisation(agent_cfg))
 
 
@@ -159,7 +161,8 @@ def build_dynaq_agent(cfg: Mapping[str, Any], max_height: float):
     q_network = _q_network(cfg, agent_cfg, max_height)
     _, dynamics_loss, value_network = _model_and_value(cfg, agent_cfg, max_height)
     policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
-    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]))
+    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]),
+                          return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)))
     return DynaQAgent(policy, loss, dynamics_loss, value_network, imagined_ratio=float(ratio),
                       terminal_reward=float(terminal),
                       reward_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),

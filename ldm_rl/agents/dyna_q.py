@@ -19,6 +19,8 @@ optimiser are FC-DQN's.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
@@ -147,8 +149,12 @@ class DynaQAgent(TargetNetworkAgent):
         imagined = self.imagine(batch)  # first: with the networks as they were before this batch's training pass
         dyn, loss_reward = self._model_losses(batch)
         real = batch.select(*TRANSITION_KEYS)
-        weight = batch.get("priority_weight", None)
         size, device = batch.batch_size[0], batch.get(keys.HEIGHTMAP).device
+        if self.loss.return_lower_bound:  # imagined transitions collected no real return: no bound for them
+            real.set("return_to_go", batch.get("return_to_go"))
+            if imagined is not None:
+                imagined.set("return_to_go", torch.full((imagined.batch_size[0], 1), -math.inf, device=device))
+        weight = batch.get("priority_weight", None)
         real.set("priority_weight", torch.ones(size, device=device) if weight is None
                  else weight.reshape(-1).to(device=device, dtype=torch.float32))
         if imagined is not None:

@@ -122,6 +122,8 @@ class SpatialDQNLoss(TransitionLoss):
     Args:
         q_network: ``(heightmap, in_hand, holding) -> [B, R, H, W]`` with ``action_values(..., action) -> [B]``.
         gamma: discount in [0, 1].
+        return_lower_bound: raise ``y`` to the batch's ``return_to_go`` where it is higher
+            (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
 
     The target network is ``target_q_network_params`` (TorchRL ``convert_to_functional``), synced by a
     TorchRL target updater (``HardUpdate``); targets run in eval mode without gradients, terminal rows
@@ -135,8 +137,9 @@ class SpatialDQNLoss(TransitionLoss):
     target_q_network_params: TensorDictParams
     out_keys = ["loss_q", "q_target", CHOSEN_ACTION_VALUE, "td_error"]
 
-    def __init__(self, q_network: nn.Module, *, gamma: float = 0.95) -> None:
+    def __init__(self, q_network: nn.Module, *, gamma: float = 0.95, return_lower_bound: bool = False) -> None:
         super().__init__()
+        self.return_lower_bound = bool(return_lower_bound)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
         self.convert_to_functional(q_network, "q_network", create_target_params=True)
@@ -156,7 +159,7 @@ class SpatialDQNLoss(TransitionLoss):
             with self.target_q_network_params.to_module(self.q_network, preserve_module_state=False), \
                     eval_mode(self.q_network):
                 q_next[rows] = self.q_network(*state, holding).flatten(1).amax(1, keepdim=True)
-        return reward + self.gamma * q_next
+        return self.lower_bounded(reward + self.gamma * q_next, tensordict)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys.require_keys(tensordict, self.in_keys, type(self).__name__)

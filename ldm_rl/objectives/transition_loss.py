@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
+from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
@@ -25,6 +27,7 @@ class TransitionKeys:
     terminated: NestedKey = (keys.NEXT, keys.TERMINATED)
     priority: NestedKey = "td_error"
     priority_weight: NestedKey = "priority_weight"
+    return_to_go: NestedKey = "return_to_go"
 
 
 class TransitionLoss(LossModule):
@@ -37,8 +40,28 @@ class TransitionLoss(LossModule):
     default_keys = TransitionKeys
     tensor_keys: TransitionKeys
 
+    #: raise a target to the return the episode actually collected from the transition on (set by subclasses)
+    return_lower_bound: bool = False
+
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
+
+    def lower_bounded(self, target: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        """``max(target, return_to_go)`` ``[B, 1]`` when ``return_lower_bound`` is on, else ``target``.
+
+        ``return_to_go`` ``[B, 1]`` is ``Σ_k γ^k r_{t+k}`` of the transition's own episode (``-inf`` where the
+        episode was truncated): written by :class:`~ldm_rl.data.FrameReplay` built with ``return_gamma = γ``.
+        A return some policy collected is a lower bound of the optimal value, so the bootstrapped target
+        cannot sink below what the agent (or the expert) actually reached (He et al. 2017, "optimality
+        tightening"); it can still rise above it.
+        """
+        if not self.return_lower_bound:
+            return target
+        bound = tensordict.get(self.tensor_keys.return_to_go, None)
+        if bound is None:
+            raise KeyError(f"{type(self).__name__}(return_lower_bound=True) needs {self.tensor_keys.return_to_go!r} "
+                           "in the batch: sample from FrameReplay(return_gamma=gamma)")
+        return torch.maximum(target, bound.reshape(-1, 1).to(target))
 
     @property
     def in_keys(self) -> list[NestedKey]:

@@ -66,6 +66,8 @@ class LookaheadLoss(TransitionLoss):
             (measured: y_V 0.9 → 3.6 within 200 updates without it).
         double_value: choose the target candidate with the online V, score it with the target V.
         q_target: ``"max"`` (the paper: ``r + γ max Q⁻(s')``) or ``"lookahead"`` (``y_Q = y_V``).
+        return_lower_bound: raise both targets to the batch's ``return_to_go`` where it is higher
+            (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
     """
 
     @dataclass
@@ -101,8 +103,10 @@ class LookaheadLoss(TransitionLoss):
         target_range: tuple[float, float] | None = None,
         double_value: bool = False,
         q_target: str = "max",
+        return_lower_bound: bool = False,
     ) -> None:
         super().__init__()
+        self.return_lower_bound = bool(return_lower_bound)
         if q_target not in ("max", "lookahead"):
             raise ValueError(f"q_target must be 'max' or 'lookahead', got {q_target!r}")
         self.q_target, self.double_value = q_target, bool(double_value)
@@ -160,8 +164,8 @@ class LookaheadLoss(TransitionLoss):
                 v_next[rows] = scores[..., 0].gather(1, best)
             else:
                 v_next[rows] = scores.amax(1, keepdim=True)
-        y_v = reward + self.gamma * v_next
-        y_q = y_v.clone() if self.q_target == "lookahead" else reward + self.gamma * q_next
+        y_v = self.lower_bounded(reward + self.gamma * v_next, tensordict)
+        y_q = y_v.clone() if self.q_target == "lookahead" else self.lower_bounded(reward + self.gamma * q_next, tensordict)
         if self.target_range is not None:
             y_q, y_v = y_q.clamp(*self.target_range), y_v.clamp(*self.target_range)
         return y_q, y_v
