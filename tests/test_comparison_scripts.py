@@ -208,3 +208,34 @@ def test_generalization_table_evaluates_a_smoke_checkpoint_beside_the_paper(smok
     stamps = [p.stat().st_mtime_ns for p in written]
     assert generalization_table.main([str(checkpoint), "--episodes", "2", "--out", str(out)]) == text
     assert "evaluating" not in capfd.readouterr().out and [p.stat().st_mtime_ns for p in written] == stamps
+
+
+plot_sample_efficiency = script("plot_sample_efficiency")
+
+
+def _dynamics_run(folder: Path, task: str, model: str, seed: int, place: list[float], overall: list[float]) -> None:
+    folder.mkdir(parents=True)
+    (folder / "final_metrics.json").write_text(json.dumps({"task": task, "model": model, "seed": seed}))
+    with open(folder / "curve.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["iteration", "sr", "sr_place", "floor_sr", "floor_sr_place"])
+        for k, (p, o) in enumerate(zip(place, overall)):
+            writer.writerow([250 * (k + 1), o, p, 0.45, 0.0])
+
+
+def test_sample_efficiency_figure_is_mean_and_standard_error_over_seeds_of_one_task(tmp_path):
+    _dynamics_run(tmp_path / "a", "bin_packing", "LDM(64)", 0, [0.1, 0.3], [0.5, 0.6])
+    _dynamics_run(tmp_path / "b", "bin_packing", "LDM(64)", 1, [0.3, 0.5, 0.7], [0.6, 0.7, 0.8])  # evaluated once more
+    _dynamics_run(tmp_path / "c", "bin_packing", "Naive", 0, [0.0, 0.0], [0.45, 0.46])
+    _dynamics_run(tmp_path / "d", "block_stacking", "LDM(64)", 0, [0.9, 0.9], [0.9, 0.9])  # another task: ignored
+    out = plot_sample_efficiency.main([str(tmp_path), "--task", "bin_packing", "--out", str(tmp_path / "fig.png")])
+    assert out.stat().st_size > 10_000
+    rows = list(csv.DictReader(open(tmp_path / "fig.csv")))
+    ldm_place = [r for r in rows if r["model"] == "LDM(64)" and r["metric"] == "sr_place"]
+    assert [int(r["iteration"]) for r in ldm_place] == [250, 500]  # only where both seeds evaluated
+    assert float(ldm_place[1]["mean"]) == pytest.approx(0.4) and float(ldm_place[1]["se"]) == pytest.approx(0.1)
+    assert all(r["n_seeds"] == "2" for r in ldm_place)
+    naive = [r for r in rows if r["model"] == "Naive" and r["metric"] == "sr"]
+    assert float(naive[0]["se"]) == 0.0 and float(naive[1]["mean"]) == pytest.approx(0.46)
+    with pytest.raises(SystemExit, match="no run of task 'house_building'"):
+        plot_sample_efficiency.main([str(tmp_path), "--task", "house_building"])

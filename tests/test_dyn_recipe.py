@@ -76,6 +76,9 @@ def test_train_dynamics_recipe_smoke(tmp_path):
 
     scalars = read_scalars(run_dir)  # the CSV logger (logger=csv, the default) is the one record of each scalar
     assert [step for step, _ in scalars["dynamics/sr"]] == [2, 4] and len(scalars["dynamics/iterations_per_s"]) == 2
+    curve = (run_dir / "curve.csv").read_text().splitlines()  # one line per evaluation, same values as the logger's
+    assert curve[0].startswith("iteration,loss,sr,sr_pick,sr_place") and [line.split(",")[0] for line in curve[1:]] == ["2", "4"]
+    assert [float(line.split(",")[2]) for line in curve[1:]] == pytest.approx([v for _, v in scalars["dynamics/sr"]])
     assert not (run_dir / "metrics.csv").exists()
     assert "${" in (run_dir / ".hydra" / "config.yaml").read_text()  # Hydra's copy keeps interpolations...
     assert "${" not in (run_dir / "config_resolved.yaml").read_text()  # ...the run's own copy has the values it used

@@ -155,6 +155,23 @@ def _prefix_of(module: torch.nn.Module, parent: torch.nn.Module) -> str | None:
     return None
 
 
+CURVE_NAME = "curve.csv"
+CURVE_FIELDS = ("iteration", "loss", "sr", "sr_pick", "sr_place", "sr_place_iou50", "sr_place_iou75", "sr_place_iou90",
+                "l1_mm", "l1_region_mm", "floor_sr", "floor_sr_pick", "floor_sr_place", "elapsed_s")
+
+
+def write_curve(rows: list[dict], path: Path) -> None:
+    """``curve.csv``: one line per evaluation (:data:`CURVE_FIELDS`; SR as fractions, L1 in mm), rewritten atomically."""
+    import csv
+
+    from ldm_rl.runtime import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CURVE_FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows({key: row.get(key, "") for key in CURVE_FIELDS} for row in rows)
+
+
 def train_dynamics(
     model: DynamicsModel,
     loss_module,
@@ -274,6 +291,7 @@ def train_dynamics(
                    **metrics, "elapsed_s": elapsed_before + time.perf_counter() - start}
             running = []
             rows.append(row)
+            write_curve(rows, out_dir / CURVE_NAME)
             if logger is not None:
                 scalars = {f"dynamics/{k}": v for k, v in row.items() if k != "iteration" and isinstance(v, (int, float))}
                 scalars["dynamics/iterations_per_s"] = (iteration - done) / max(time.perf_counter() - start, 1e-9)
