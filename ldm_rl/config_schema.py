@@ -364,7 +364,7 @@ class AgentConfig:
     double_value: bool = False
     q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")
     autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="ldm: autocast of the update's forward passes")
-    return_lower_bound: bool = spec(False, doc="raise the targets to the return the episode collected (not rs)")
+    return_lower_bound: bool = spec(False, doc="raise the targets to the return the episode collected")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -388,9 +388,6 @@ class AgentConfig:
                                  f"(agent.name={node.name})")
         if node.name != "ldm" and node.autocast is not None:
             found.append(f"{prefix}autocast={_show(node.autocast)} is set but only agent=ldm uses it (agent.name={node.name})")
-        if node.name == "rs" and node.return_lower_bound:
-            found.append(f"{prefix}return_lower_bound=true: agent=rs has no such option (its V excludes the arrival "
-                         "reward, so the episode's return is not a bound of it)")
         bounds = node.target_range
         if bounds is not None and not (len(bounds) == 2 and bounds[0] < bounds[1]):
             found.append(f"{prefix}target_range={_show(bounds)}: must be null or [low, high] with low < high")

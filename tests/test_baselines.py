@@ -238,6 +238,13 @@ def test_rs_value_targets_are_the_best_target_score_of_fresh_candidates():
                                             live["next", "holding"][:, None].expand(2, 4, 1), cands)
         v, r = loss.value_network.eval().value_and_reward(pred.heightmap.flatten(0, 1), pred.in_hand.flatten(0, 1))
     torch.testing.assert_close(y[[0, 2]], (r + 0.9 * v).reshape(2, 4).amax(1, keepdim=True))  # target = online at start
+    # return_lower_bound: the bound is the return from the NEXT step on (RS's V excludes the arrival reward)
+    bounded = make_agent("rs", "agent.gamma=0.9", "agent.num_target_candidates=4", "agent.return_lower_bound=true")
+    data["return_to_go"] = torch.full((3, 1), 7.0)  # the transition's own return: must not be used
+    data["next", "return_to_go"] = torch.tensor([[5.0], [float("-inf")], [-5.0]])
+    torch.manual_seed(5)
+    y_bounded = bounded.loss.targets(data)
+    torch.testing.assert_close(y_bounded, torch.maximum(y, data["next", "return_to_go"]))
 
 
 # ----------------------------------------------------------------------------------------- Dyna-Q
@@ -345,7 +352,6 @@ def test_every_baseline_config_validates_and_names_its_agent(name):
         ("rs", "agent.object_dilation=null", r"agent.object_dilation is null: agent=rs needs it"),
         ("fcdqn", "agent.imagined_ratio=1", r"agent.imagined_ratio=1(\.0)? is set but only agent=dynaq uses it"),
         ("rs", "agent.object_height_threshold=0", r"agent.object_height_threshold=0(\.0)? is out of range"),
-        ("rs", "agent.return_lower_bound=true", r"agent.return_lower_bound=true: agent=rs has no such option"),
     ],
 )
 def test_bad_baseline_config_is_one_clear_error(agent, override, message):

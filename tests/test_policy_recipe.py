@@ -23,7 +23,8 @@ def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("train_policy")
-    proc = run("train_policy.py", "experiment=smoke", f"hydra.run.dir={out}", cwd=out)
+    # with the return bound on (the stacking_lite choice), so the replay's return column runs end to end
+    proc = run("train_policy.py", "experiment=smoke", "agent.return_lower_bound=true", f"hydra.run.dir={out}", cwd=out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, proc
 
@@ -99,7 +100,7 @@ def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path)
     out, _ = smoke_run
     run_dir = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "train_policy.py"), "experiment=smoke",
-                             f"hydra.run.dir={run_dir}"], env=ENV, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                             "agent.return_lower_bound=true", f"hydra.run.dir={run_dir}"], env=ENV, cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     deadline = time.time() + 600
     while not (run_dir / "checkpoint.pt").exists() and proc.poll() is None and time.time() < deadline:

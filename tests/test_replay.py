@@ -538,8 +538,10 @@ def test_return_to_go_is_the_discounted_return_of_terminated_episodes_only():
     assert torch.allclose(column[:7], expected)
     batch = rb.sample(64)
     ep, step = decode_ids(batch["heightmap"])
-    for e, t, value in zip(ep.tolist(), step.tolist(), batch["return_to_go"].reshape(-1).tolist()):
+    for e, t, value, following in zip(ep.tolist(), step.tolist(), batch["return_to_go"].reshape(-1).tolist(),
+                                      batch["next", "return_to_go"].reshape(-1).tolist()):
         assert value == pytest.approx(expected[t].item() if e == 1 else -math.inf)
+        assert following == pytest.approx(expected[t + 1].item() if e == 1 else -math.inf)  # -inf after the last step
 
 
 def test_buffer_without_return_gamma_has_no_return_column():

@@ -146,7 +146,8 @@ def build_rs_agent(cfg: Mapping[str, Any], max_height: float):
     loss = RandomShootingLoss(dynamics, value_network, gamma=gamma,
                               num_target_candidates=int(agent_cfg["num_target_candidates"]),
                               value_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),
-                              chunk_size=int(agent_cfg.get("chunk_size", 64)), **rule)
+                              chunk_size=int(agent_cfg.get("chunk_size", 64)),
+                              return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)), **rule)
     return RandomShootingAgent(planner, loss, dynamics_loss, **_optimisation(agent_cfg))
 
 

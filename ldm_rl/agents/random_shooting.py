@@ -125,6 +125,8 @@ class RandomShootingLoss(TransitionLoss):
         height_threshold, dilation: the candidate rule.
         value_on_prediction: also fit ``V``/``R`` on ``f(s, a)`` (from ``next_logits`` when present).
         chunk_size: state-candidate pairs per LDM/V pass of the targets.
+        return_lower_bound: raise ``y_V`` to the return the episode collected from the *next* step on
+            (``("next", "return_to_go")``: this V excludes the arrival reward; not in the paper).
     """
 
 
@@ -147,8 +149,10 @@ class RandomShootingLoss(TransitionLoss):
         dilation: int = 8,
         value_on_prediction: bool = True,
         chunk_size: int = 64,
+        return_lower_bound: bool = False,
     ) -> None:
         super().__init__()
+        self.return_lower_bound = bool(return_lower_bound)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
         if not isinstance(num_target_candidates, int) or num_target_candidates < 1:
@@ -176,7 +180,7 @@ class RandomShootingLoss(TransitionLoss):
                 scores = shooting_scores(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
                                          gamma=self.gamma, chunk_size=self.chunk_size)
             target[rows] = scores.amax(1, keepdim=True)
-        return target
+        return self.lower_bounded(target, tensordict, key=(keys.NEXT, self.tensor_keys.return_to_go))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys.require_keys(tensordict, self.in_keys, type(self).__name__)

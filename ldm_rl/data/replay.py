@@ -651,6 +651,7 @@ class FrameReplay:
                     DONE: terminated | truncated,
                     TERMINATED: terminated,
                     TRUNCATED: truncated,
+                    **({RETURN_TO_GO: following.get(RETURN_TO_GO)} if self.return_gamma is not None else {}),
                 },
                 _INDEX: index,
                 _WEIGHT: (weight / weight.max()).to(torch.float32),

@@ -46,20 +46,22 @@ class TransitionLoss(LossModule):
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
 
-    def lower_bounded(self, target: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+    def lower_bounded(self, target: torch.Tensor, tensordict: TensorDictBase, key=None) -> torch.Tensor:
         """``max(target, return_to_go)`` ``[B, 1]`` when ``return_lower_bound`` is on, else ``target``.
 
         ``return_to_go`` ``[B, 1]`` is ``Σ_k γ^k r_{t+k}`` of the transition's own episode (``-inf`` where the
         episode was truncated): written by :class:`~ldm_rl.data.FrameReplay` built with ``return_gamma = γ``.
         A return some policy collected is a lower bound of the optimal value, so the bootstrapped target
         cannot sink below what the agent (or the expert) actually reached (He et al. 2017, "optimality
-        tightening"); it can still rise above it.
+        tightening"); it can still rise above it. ``key``: read the bound elsewhere, e.g. ``("next",
+        "return_to_go")`` (the return from the *next* step on, for a value that excludes the arrival reward).
         """
         if not self.return_lower_bound:
             return target
-        bound = tensordict.get(self.tensor_keys.return_to_go, None)
+        key = self.tensor_keys.return_to_go if key is None else key
+        bound = tensordict.get(key, None)
         if bound is None:
-            raise KeyError(f"{type(self).__name__}(return_lower_bound=True) needs {self.tensor_keys.return_to_go!r} "
+            raise KeyError(f"{type(self).__name__}(return_lower_bound=True) needs {key!r} "
                            "in the batch: sample from FrameReplay(return_gamma=gamma)")
         return torch.maximum(target, bound.reshape(-1, 1).to(target))
 
