@@ -3,9 +3,9 @@
     python recipes/aggregate_sweep.py multirun/2026-11-21/10-00-00 [--out DIR] [--metrics a,b] [--x episodes]
 
 Reads the sweep's job folders (``<sweep>/<n>/`` with Hydra's ``.hydra/overrides.yaml``), each run's
-``final_metrics.json`` and its curve: ``curve.csv`` of ``recipes/train_policy.py`` (greedy success rate
-per evaluation) or the CSV logger's scalars of ``recipes/train_dynamics.py`` (``logger=csv``, the default:
-held-out SR per evaluation, ``ldm_rl.runtime.read_scalars``; other loggers leave the run without a curve). Runs
+``final_metrics.json`` and its ``curve.csv``: greedy success rate per evaluation (``recipes/train_policy.py``)
+or held-out SR per evaluation (``recipes/train_dynamics.py``; dynamics runs written before it had a curve.csv
+fall back on the CSV logger's scalars, ``ldm_rl.runtime.read_scalars``). Runs
 whose overrides differ only in ``seed`` (and ``resume``) form one group. Writes, by default into the
 sweep folder:
 
@@ -111,10 +111,11 @@ def read_dynamics_curve(path: Path) -> list[dict]:
 
 def run_kind(path: Path, metrics: dict) -> tuple[str | None, list[dict]]:
     """("policy" | "dynamics" | None, the run's curve rows)."""
-    if (path / "curve.csv").is_file():
-        return "policy", read_curve(path / "curve.csv")
-    if "agent" not in metrics and "sr" in metrics:
-        return "dynamics", read_dynamics_curve(path)
+    curve = path / "curve.csv"  # both recipes write one; dynamics runs older than it have only the logger's scalars
+    if "agent" in metrics:
+        return "policy", read_curve(curve) if curve.is_file() else []
+    if "sr" in metrics:
+        return "dynamics", read_curve(curve) if curve.is_file() else read_dynamics_curve(path)
     return None, []
 
 
