@@ -307,8 +307,13 @@ def plot_learning_curve(rows: Sequence[Mapping[str, float]], path: str | Path, *
         raise ValueError("rows is empty: nothing to plot")
     fig = _figure(10.0, 4.0)
     axes = fig.subplots(1, 2, sharey=True)
-    per_point = rows[-1].get("eval_episodes")
-    line = "greedy success rate" + (f" ({int(per_point)} episodes per point)" if per_point else "")
+    counts = sorted({int(row["eval_episodes"]) for row in rows if row.get("eval_episodes")})
+    if not counts:
+        line = "greedy success rate"
+    elif len(counts) == 1:
+        line = f"greedy success rate ({counts[0]} episodes per point)"
+    else:  # e.g. 20 per periodic evaluation, 100 for the final one
+        line = f"greedy success rate ({' or '.join(map(str, counts))} episodes per point)"
     pct = lambda key: [100.0 * float(r[key]) for r in rows]  # noqa: E731
     for ax, key, label in ((axes[0], "episodes", "training episodes"), (axes[1], "wall_s", "wall-clock time (min)")):
         xs = [float(r[key]) / (60.0 if key == "wall_s" else 1.0) for r in rows]

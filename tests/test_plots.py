@@ -133,6 +133,9 @@ def test_learning_curve_has_two_panels_in_percent_with_the_interval(tmp_path):
     assert fig.get_suptitle() == "ldm agent, seed 0"
     episodes, minutes = fig.axes
     assert list(episodes.get_lines()[0].get_xdata()) == [0, 5, 10]
+    rows[-1]["eval_episodes"] = 100  # the final evaluation plays more episodes than the periodic ones
+    mixed = plots.plot_learning_curve(rows, tmp_path / "mixed.png", title="ldm agent, seed 0")
+    assert texts(mixed)["legend"][1] == "greedy success rate (10 or 100 episodes per point)"
     assert list(minutes.get_lines()[0].get_xdata()) == pytest.approx([0.0, 5.0, 10.0])
     assert list(episodes.get_lines()[0].get_ydata()) == pytest.approx([0.0, 50.0, 100.0])
     assert episodes.get_ylim()[0] < 0
