@@ -177,7 +177,8 @@ def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
         ax.legend(loc="upper left", fontsize=8)
     for ax in list(axes.flat)[n:]:
         ax.remove()
-    fig.suptitle("Greedy success rate against training episodes (mean ± standard error over seeds)")
+    title = "Greedy success rate against training episodes (mean ± standard error over seeds)"
+    fig.suptitle(title if ncols > 1 else title.replace(" (", "\n("))  # one panel: two lines fit its width
     fig.tight_layout()
     with atomic_path(png) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
