@@ -3,8 +3,8 @@
 The paper's planner proposes N actions per state: each is drawn from ``softmax(Q/τ)`` over every
 (rotation, row, column) of the current primitive's Q map, after which a Gaussian of height β around
 the drawn action is subtracted from the map, so the next draw is pushed elsewhere. ``mode="argmax"``
-is the authors' released code (deterministic argmax, no temperature); see
-``shared/notes/reference-implementation.md`` §5 and §9 items 17, 22. Unlike that code, the rotation
+is the authors' released code (deterministic argmax, no temperature; its inhibition window is
+clamped at the rotation range's ends). Unlike that code, the rotation
 axis of the inhibition is circular: bins k·π/R live on a circle mod π (``geometry.circular_bin_distance``).
 
 Pure tensor code: imports only torch and :mod:`ldm_rl.geometry`.
