@@ -390,3 +390,37 @@ def test_smoke_run_end_to_end(name, tmp_path):
     assert len((tmp_path / "curve.csv").read_text().splitlines()) >= 3
     agent, cfg = load_agent(tmp_path / "checkpoint.pt")
     assert agent.name == name and agent.updates == 0  # load_agent restores weights (training state: resume)
+
+
+@pytest.mark.slow
+def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_path):
+    """experiment=smoke env=bin_packing: the expert episodes that seed the replay end terminated with a
+    reward in (0, 1] (the pile reward), the recipe counts exactly those as successes, and a run ends."""
+    from ldm_rl.evaluation import episode_succeeded
+
+    sys.path.insert(0, str(ROOT / "recipes"))
+    try:
+        from train_policy import expert_episodes
+    finally:
+        sys.path.remove(str(ROOT / "recipes"))
+    cfg = config("fcdqn", "env=bin_packing", "schedule.expert_episodes=2")
+    episodes = expert_episodes(cfg)
+    assert len(episodes) == 2
+    for episode in episodes:
+        last = episode[-1]
+        reward = float(last["next", "reward"])
+        assert bool(last["next", "terminated"]) and 0.0 < reward <= 1.0
+        assert episode_succeeded(episode)
+        assert (episode[:-1]["next", "reward"] == 0).all()  # the pile reward comes only with success
+    failed = episodes[0].clone()
+    failed[-1]["next", "reward"].zero_()
+    assert not episode_succeeded(failed)  # terminated at 0 reward (an invalid scene) is no success
+
+    command = [sys.executable, str(RECIPE), "experiment=smoke", "env=bin_packing", "agent=fcdqn",
+               "schedule.total_episodes=1", "schedule.final_eval_episodes=1", "env.max_steps=3",
+               f"hydra.run.dir={tmp_path}"]
+    proc = subprocess.run(command, capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    final = json.loads((tmp_path / "final_metrics.json").read_text())
+    assert final["task"] == "ldm_rl/BinPacking-v0" and final["num_objects"] == 8
+    assert 0.0 <= final["success_rate"] <= 1.0 and final["episodes_final_eval"] == 1 and final["updates"] > 0
