@@ -8,7 +8,8 @@ One step = forward + backward + Adam on ``--batch`` transitions with random bloc
 picks, second half places), built once from one seed and shared by every row:
 
 * ``ours-paper`` / ``ours-lite``: ``LDMLoss`` (crop, depth classes, **one head per sample**, focal loss,
-  γ = 2, auto class weights) and ``torch.optim.Adam`` as the training recipe uses it.
+  γ = 2, auto class weights) and Adam with its fused kernel (``ldm_rl.runtime.make_adam``) as the training
+  recipe uses it (``--plain-adam``: torch's default for-loop Adam).
 * ``ref-1head`` / ``ref-2heads``: the released network rebuilt layer by layer in
   ``benchmarks/reference_ldm.py`` (24,893,963 parameters per head, K = 11 classes) and its released
   update on the same scenes: bilinear crops of the one-hot scene, both heads on every sample
@@ -40,6 +41,7 @@ from reference_ldm import REFERENCE_HEAD_PARAMS, ReferenceHead, ReferenceLDMStep
 
 from ldm_rl.geometry import heights_to_classes  # noqa: E402
 from ldm_rl.objectives import LDMLoss  # noqa: E402
+from ldm_rl.runtime import make_adam  # noqa: E402
 from ldm_rl.world_model import build_dynamics_model, count_parameters  # noqa: E402
 
 MAX_HEIGHT = 0.15
@@ -100,7 +102,7 @@ def time_steps(model_name: str, mode: str, args) -> list[float]:
         if channels_last:
             model = model.to(memory_format=torch.channels_last)
         loss = LDMLoss(model, gamma=2.0, class_weights="auto").train()
-        opt = torch.optim.Adam(loss.parameters(), lr=1e-3, fused=args.fused_adam or None)
+        opt = (torch.optim.Adam(loss.parameters(), lr=1e-3) if args.plain_adam else make_adam(loss.parameters(), lr=1e-3))
 
         def step() -> None:
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
@@ -129,7 +131,7 @@ def measure_in_subprocess(args, model_name: str, mode: str) -> list[str]:
     """Run one (model, mode) in a child process; returns [warm-up, best, median] or ['crashed']."""
     cmd = [sys.executable, __file__, "--single", model_name, mode, "--width", str(args.width), "--batch",
            str(args.batch), "--repeats", str(args.repeats)]
-    cmd += (["--threads", str(args.threads)] if args.threads else []) + (["--fused-adam"] if args.fused_adam else [])
+    cmd += (["--threads", str(args.threads)] if args.threads else []) + (["--plain-adam"] if args.plain_adam else [])
     result = subprocess.run(cmd, capture_output=True, text=True)
     lines = result.stdout.strip().splitlines()
     return lines[-1].split() if result.returncode == 0 and lines else ["crashed"]
@@ -143,7 +145,8 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--repeats", type=int, default=5, help="timed steps after the warm-up step")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-    parser.add_argument("--fused-adam", action="store_true", help="ours: torch.optim.Adam(fused=True) (CPU kernel)")
+    parser.add_argument("--plain-adam", action="store_true", help="ours: torch's default Adam (a for-loop on CPU) instead of "
+                        "the recipe's fused kernel (ldm_rl.runtime.make_adam)")
     parser.add_argument("--single", nargs=2, metavar=("MODEL", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.batch < 2 or args.repeats < 1:
@@ -154,7 +157,7 @@ def main() -> None:
         times = time_steps(*args.single, args)
         print(f"{times[0]:.3f} {min(times[1:]):.3f} {statistics.median(times[1:]):.3f}")
         return
-    adam = "fused Adam" if args.fused_adam else "Adam"
+    adam = "Adam (default for-loop)" if args.plain_adam else "fused Adam (as the recipe)"
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, batch {args.batch} (half pick / half place), "
           f"{args.repeats} timed steps after 1 warm-up step, wall seconds; ours: {adam}")
     print(f"| {'model':<10} | {'params/head':>11} | {'GFLOP/crop/head':>15} | {'mode':<7} | {'warm-up s':>9} "

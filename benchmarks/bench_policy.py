@@ -31,6 +31,7 @@ from ldm_rl.models.q_fcn import build_q_network
 from ldm_rl.models.v_cnn import build_value_network
 from ldm_rl.objectives import LDMLoss, LookaheadLoss
 from ldm_rl.planning.planner import LookaheadPlanner
+from ldm_rl.runtime import make_adam
 from ldm_rl.world_model import build_dynamics_model
 
 MAX_HEIGHT = 0.25
@@ -68,7 +69,7 @@ def build(preset: str, num_candidates: int, num_target_candidates: int, autocast
                                autocast=autocast)
     loss = LookaheadLoss(q, dynamics, value, num_target_candidates=num_target_candidates)
     ldm_loss = LDMLoss(dynamics, write_logits=True)
-    optims = [torch.optim.Adam(m.parameters(), lr=1e-4) for m in (q, value, dynamics)]
+    optims = [make_adam(m.parameters(), lr=1e-4) for m in (q, value, dynamics)]  # as the agent
     return planner, loss, ldm_loss, optims
 
 

@@ -31,6 +31,7 @@ __all__ = [
     "MissingExtraError",
     "LOGGER_BACKENDS",
     "eval_mode",
+    "make_adam",
 ]
 
 
@@ -285,3 +286,11 @@ def eval_mode(*modules: torch.nn.Module) -> Iterator[None]:
     finally:
         for m, training in flags:
             m.training = training
+
+
+def make_adam(params, *, lr: float, weight_decay: float = 0.0) -> torch.optim.Adam:
+    """``torch.optim.Adam`` with its fused kernel (one pass over each parameter's state instead of the
+    default CPU for-loop's several): measured 0.06 s vs 0.18 s per step on the paper LDM's 50 M parameters,
+    one thread, ≈ 4 % of a paper-preset LDM update (docs/dynamics.md, Speed). Same update rule; the last
+    bits of the results differ from the for-loop implementation's."""
+    return torch.optim.Adam(params, lr=float(lr), weight_decay=float(weight_decay), fused=True)

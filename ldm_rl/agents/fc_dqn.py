@@ -30,7 +30,7 @@ from ldm_rl.objectives.transition_loss import TransitionLoss
 from ldm_rl.agents.base import Agent
 from ldm_rl.planning.planner import ScheduleLike, as_schedule, is_greedy
 from ldm_rl.planning.sampling import sample_candidates
-from ldm_rl.runtime import eval_mode
+from ldm_rl.runtime import eval_mode, make_adam
 
 __all__ = ["StatePolicy", "QMapPolicy", "SpatialDQNLoss", "TargetNetworkAgent", "FCDQNAgent", "CHOSEN_ACTION_VALUE",
            "flat_to_action"]
@@ -217,8 +217,7 @@ class TargetNetworkAgent(Agent):
         for name, module in self.trained.items():
             if name not in lr or not lr[name] > 0:
                 raise ValueError(f"lr.{name} must be a positive number, got {lr.get(name)!r}")
-            self.optimizers[name] = torch.optim.Adam(module.parameters(), lr=float(lr[name]),
-                                                     weight_decay=float(weight_decay.get(name, 0.0)))
+            self.optimizers[name] = make_adam(module.parameters(), lr=lr[name], weight_decay=weight_decay.get(name, 0.0))
             self.lr_schedulers[name] = torch.optim.lr_scheduler.StepLR(self.optimizers[name], lr_decay_every, lr_decay)
         self.q_grad_clip = q_grad_clip
         # HardUpdate copies on every (k+1)-th step() call

@@ -16,6 +16,7 @@ from torchrl.objectives import HardUpdate
 from ldm_rl.agents.base import Agent
 from ldm_rl.objectives import LDMLoss, LookaheadLoss
 from ldm_rl.planning.planner import LookaheadPlanner
+from ldm_rl.runtime import make_adam
 
 __all__ = ["LDMAgent"]
 
@@ -51,8 +52,8 @@ class LDMAgent(Agent):
         for name in NETWORKS:
             if name not in lr or not lr[name] > 0:
                 raise ValueError(f"lr.{name} must be a positive number, got {lr.get(name)!r}")
-            self.optimizers[name] = torch.optim.Adam(modules[name].parameters(), lr=float(lr[name]),
-                                                     weight_decay=float(weight_decay.get(name, 0.0)))
+            self.optimizers[name] = make_adam(modules[name].parameters(), lr=lr[name],
+                                              weight_decay=weight_decay.get(name, 0.0))
             self.lr_schedulers[name] = torch.optim.lr_scheduler.StepLR(self.optimizers[name], lr_decay_every, lr_decay)
         # HardUpdate copies on every (k+1)-th step() call
         self.target_updater = HardUpdate(loss, value_network_update_interval=target_update_interval - 1)

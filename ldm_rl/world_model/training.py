@@ -22,6 +22,7 @@ from ldm_rl.checkpoint import Checkpoint, RunStopped, StopSignals, capture_rng_s
 from ldm_rl.metrics import MetricSettings, floor_transition_metrics, summarize, summarize_floors, transition_metrics
 from ldm_rl.plots import PlotDependencyError, plot_success_rate
 from ldm_rl.progress import progress_bar
+from ldm_rl.runtime import make_adam
 from ldm_rl.world_model.core import DynamicsModel
 
 __all__ = ["PrimitiveBalancedSampler", "REQUIRED_KEYS", "split_transitions", "evaluate", "prediction_grid",
@@ -231,7 +232,7 @@ def train_dynamics(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / "checkpoint.pt"
-    optimizer = torch.optim.Adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
+    optimizer = make_adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=lr_decay_every, gamma=lr_decay)
     sampler = PrimitiveBalancedSampler(train["holding"], batch_size, seed)
     prefix = _prefix_of(model, loss_module)
