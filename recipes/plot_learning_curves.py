@@ -2,12 +2,15 @@
 
     python recipes/plot_learning_curves.py multirun/<date>/<time> [more sweeps or run folders] [--out curves.png]
 
-Reads every run below the given folders (a run folder holds ``curve.csv`` and Hydra's ``.hydra/config.yaml``
-and ``.hydra/overrides.yaml``): one panel per task (env id and object count), one line per agent, the greedy
-success rate against training episodes as the mean ± standard error over the agent's seeds. Each seed's curve
+Reads every run below the given folders (a run folder holds ``curve.csv`` and Hydra's ``.hydra/config.yaml``):
+one panel per task (env id and object count), one line per agent, the greedy success rate against training episodes as the mean ± standard error over the agent's seeds. Each seed's curve
 (one point per evaluation) is interpolated linearly onto the union of the seeds' episode counts, up to the
-shortest seed's last evaluation, so every plotted point averages all seeds. Runs of one agent that differ in
-another override (e.g. two sweeps with different ``agent.lr.q``) get separate lines, labelled with it.
+shortest seed's last evaluation, so every plotted point averages all seeds. Runs of one agent are seeds of one
+line when their resolved configs agree on everything but the run's budget and bookkeeping (:data:`BUDGET_KEYS`:
+seed, episode / wall-clock budget, checkpoints, progress, logger, threads, device), whichever preset or override
+set it: a run stopped by a wall-clock budget joins the seeds of a preset with an episode budget. Runs of one agent
+whose configs differ elsewhere (e.g. two sweeps with different ``agent.lr.q``) get separate lines, each labelled
+with its values of the keys that differ.
 Writes the figure (PNG) and a CSV of the plotted points (task, objects, agent, label, episodes, mean, se,
 n_seeds); default ``<first folder>/learning_curves.png`` and ``.csv``.
 """
@@ -34,21 +37,23 @@ TASKS = {
 }
 # line order, names and colours of the agents (conf/agent/*.yaml)
 AGENTS = {"ldm": ("LDM", "C0"), "fcdqn": ("FC-DQN", "C1"), "rs": ("RS", "C2"), "dynaq": ("Dyna-Q", "C3")}
-# overrides that tell replicates apart (or do not change the experiment) rather than name a variant
-REPLICATE_KEYS = ("seed", "agent", "resume")
+# config keys (or groups, by prefix) that set a run's seed, budget or bookkeeping: they tell the seeds of one
+# experiment apart, or how long and where it ran, but not what it learns up to the shorter run's end
+BUDGET_KEYS = ("seed", "resume", "schedule.total_episodes", "schedule.max_wall_clock_s", "schedule.checkpoint_every",
+               "schedule.progress", "logger", "threads", "device", "hydra", "replay.scratch_dir")
 CSV_FIELDS = ("task", "num_objects", "agent", "label", "episodes", "mean", "se", "n_seeds")
 
 
 @dataclass
 class Run:
-    """One training run: its task, agent, seed, overrides and evaluated curve (episodes, success rate)."""
+    """One training run: its task, agent, seed, config and evaluated curve (episodes, success rate)."""
 
     path: Path
     task: str
     num_objects: int
     agent: str
     seed: int
-    variant: tuple[str, ...]  # overrides other than seed / agent / resume / hydra's
+    config: dict[str, str]  # the resolved config as dotted key -> value text, without BUDGET_KEYS
     episodes: list[float] = field(default_factory=list)
     success: list[float] = field(default_factory=list)
 
@@ -63,26 +68,29 @@ def _run_folders(paths: list[Path]) -> list[Path]:
     return sorted(set(found))
 
 
-def _override_key(text: str) -> str:
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    (override,) = OverridesParser.create().parse_overrides([text])
-    return override.key_or_group
+def _flat(node, prefix: str = "") -> dict[str, str]:
+    """A nested config (dicts, lists, scalars) -> {dotted key: value text}, without :data:`BUDGET_KEYS`."""
+    if any(prefix == key or prefix.startswith(key + ".") for key in BUDGET_KEYS):
+        return {}
+    if isinstance(node, dict):
+        out: dict[str, str] = {}
+        for key, value in node.items():
+            out.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
+        return out
+    return {prefix: repr(node)}
 
 
 def read_run(folder: Path) -> Run:
-    """A run folder of ``recipes/train_policy.py`` -> :class:`Run` (one curve point per episode count: the last
-    evaluation at that count, e.g. the final 100-episode one)."""
+    """A run folder of ``recipes/train_policy.py`` (its ``curve.csv`` and ``.hydra/config.yaml``) -> :class:`Run`
+    (one curve point per episode count: the last evaluation at that count, e.g. the final 100-episode one)."""
     from omegaconf import OmegaConf
 
-    config_file, overrides_file = folder / ".hydra" / "config.yaml", folder / ".hydra" / "overrides.yaml"
+    config_file = folder / ".hydra" / "config.yaml"
     if not config_file.is_file():
         raise ValueError(f"{folder}: has curve.csv but no .hydra/config.yaml (not a run of recipes/train_policy.py)")
     cfg = OmegaConf.load(config_file)
-    overrides = OmegaConf.to_container(OmegaConf.load(overrides_file)) if overrides_file.is_file() else []
-    keys = [(o, _override_key(o)) for o in overrides or []]
-    variant = tuple(sorted(o for o, key in keys if key not in REPLICATE_KEYS and not key.startswith(("hydra.", "hydra/"))))
-    run = Run(folder, str(cfg.env.id), int(cfg.env.num_objects), str(cfg.agent.name), int(cfg.seed), variant)
+    config = _flat(OmegaConf.to_container(cfg, resolve=False))
+    run = Run(folder, str(cfg.env.id), int(cfg.env.num_objects), str(cfg.agent.name), int(cfg.seed), config)
     points: dict[float, float] = {}
     with open(folder / "curve.csv", newline="") as f:
         for row in csv.DictReader(f):
@@ -106,9 +114,17 @@ def mean_curve(runs: list[Run]) -> list[tuple[float, float, float]]:
     return [(float(x), float(m), float(e)) for x, m, e in zip(grid, values.mean(axis=0), se)]
 
 
+def varying_keys(runs: list[Run]) -> list[str]:
+    """Config keys whose values differ among ``runs`` (a key some runs lack, e.g. one added to the configs
+    after an older run was made, is not compared)."""
+    shared = set.intersection(*(set(run.config) for run in runs))
+    return sorted(key for key in shared if len({run.config[key] for run in runs}) > 1)
+
+
 def group(runs: list[Run]) -> dict[tuple[str, int], dict[str, list[Run]]]:
-    """Panels (task, objects) -> line label -> runs (one per seed); an agent's label names the overrides in
-    which its runs differ from the panel's other runs."""
+    """Panels (task, objects) -> line label -> runs (one per seed). An agent's runs form one line when their
+    configs agree outside :data:`BUDGET_KEYS`; otherwise one line per configuration, labelled with its values of
+    the keys that differ among that agent's runs."""
     panels: dict[tuple[str, int], list[Run]] = defaultdict(list)
     for run in runs:
         panels[(run.task, run.num_objects)].append(run)
@@ -116,20 +132,27 @@ def group(runs: list[Run]) -> dict[tuple[str, int], dict[str, list[Run]]]:
     agent_order = {agent: i for i, agent in enumerate(AGENTS)}
     out: dict[tuple[str, int], dict[str, list[Run]]] = {}
     for key in sorted(panels, key=lambda k: (order.get(k[0], len(order)), k)):
-        members = panels[key]
-        common = set.intersection(*(set(r.variant) for r in members))
-        lines: dict[str, list[Run]] = defaultdict(list)
-        for run in sorted(members, key=lambda r: (agent_order.get(r.agent, len(agent_order)), r.agent, r.variant, r.seed)):
-            extra = [o for o in run.variant if o not in common]
-            label = AGENTS.get(run.agent, (run.agent,))[0] + (f" ({', '.join(extra)})" if extra else "")
-            lines[label].append(run)
-        for label, line in lines.items():
-            seeds = [r.seed for r in line]
-            if len(set(seeds)) != len(seeds):
-                paths = ", ".join(str(r.path) for r in line)
-                raise ValueError(f"{TASKS.get(key[0], (key[0],))[0]}, {label}: the same seed twice ({paths}); give "
-                                 "runs that differ only in their seed, or add the override that tells them apart")
-        out[key] = dict(lines)
+        by_agent: dict[str, list[Run]] = defaultdict(list)
+        for run in panels[key]:
+            by_agent[run.agent].append(run)
+        lines: dict[str, list[Run]] = {}
+        for agent in sorted(by_agent, key=lambda a: (agent_order.get(a, len(agent_order)), a)):
+            members = by_agent[agent]
+            differ = varying_keys(members)
+            name = AGENTS.get(agent, (agent,))[0]
+            variants: dict[str, list[Run]] = defaultdict(list)
+            for run in members:
+                values = ", ".join(f"{k}={run.config[k]}" for k in differ)
+                variants[f"{name} ({values})" if values else name].append(run)
+            for label in sorted(variants):
+                line = sorted(variants[label], key=lambda r: r.seed)
+                seeds = [r.seed for r in line]
+                if len(set(seeds)) != len(seeds):
+                    paths = ", ".join(str(r.path) for r in line)
+                    raise ValueError(f"{TASKS.get(key[0], (key[0],))[0]}, {label}: the same seed twice ({paths}); give "
+                                     "runs that differ in their seed, or in a setting that names a variant")
+                lines[label] = line
+        out[key] = lines
     return out
 
 

@@ -93,13 +93,14 @@ def cfg_env_id(task: str) -> str:
 # ---------------------------------------------------------------------------- learning curves: math
 
 
-def write_run(folder: Path, *, task: str, objects: int, agent: str, seed: int, points, extra=()) -> Path:
-    """A run folder as recipes/train_policy.py writes it: .hydra/config.yaml, .hydra/overrides.yaml, curve.csv."""
+def write_run(folder: Path, *, task: str, objects: int, agent: str, seed: int, points, config=None) -> Path:
+    """A run folder as recipes/train_policy.py writes it: .hydra/config.yaml (``config``: more dotted keys) and curve.csv."""
     (folder / ".hydra").mkdir(parents=True)
-    OmegaConf.save(OmegaConf.create({"seed": seed, "env": {"id": task, "num_objects": objects}, "agent": {"name": agent}}),
-                   folder / ".hydra" / "config.yaml")
-    OmegaConf.save(OmegaConf.create(["experiment=curves_x", f"agent={agent}", f"seed={seed}", *extra]),
-                   folder / ".hydra" / "overrides.yaml")
+    cfg = OmegaConf.create({"seed": seed, "env": {"id": task, "num_objects": objects}, "agent": {"name": agent},
+                            "schedule": {"total_episodes": 500, "max_wall_clock_s": None}})
+    for key, value in (config or {}).items():
+        OmegaConf.update(cfg, key, value)
+    OmegaConf.save(cfg, folder / ".hydra" / "config.yaml")
     with open(folder / "curve.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length"])
@@ -115,24 +116,29 @@ def read_csv(path: Path) -> list[dict]:
 
 def test_curves_are_interpolated_averaged_over_seeds_and_split_by_variant(tmp_path, capsys):
     stack, bottles = "ldm_rl/BlockStacking-v0", "ldm_rl/BottleArrangement-v0"
-    sweep = tmp_path / "sweep"
-    # two seeds evaluated at different episode counts; seed 0 evaluated twice at 20 episodes (the final eval counts)
-    write_run(sweep / "0", task=stack, objects=3, agent="ldm", seed=0, points=[(0, 0.0), (10, 0.5), (20, 0.3), (20, 1.0)])
-    write_run(sweep / "1", task=stack, objects=3, agent="ldm", seed=1, points=[(0, 0.2), (15, 0.5), (30, 0.8)])
-    write_run(sweep / "2", task=stack, objects=3, agent="ldm", seed=0, points=[(0, 0.0), (40, 0.1)], extra=["agent.lr.q=0.001"])
-    write_run(tmp_path / "other" / "run", task=bottles, objects=4, agent="fcdqn", seed=3, points=[(0, 0.0), (50, 0.25)])
+    sweep, base, other_lr = tmp_path / "sweep", {"agent.lr.q": 1e-4}, {"agent.lr.q": 1e-3}
+    # two seeds evaluated at different episode counts; seed 0 evaluated twice at 20 episodes (the final eval counts);
+    # seed 1 ran under a wall-clock budget instead of an episode budget: the same experiment, so the same line
+    write_run(sweep / "0", task=stack, objects=3, agent="ldm", seed=0, points=[(0, 0.0), (10, 0.5), (20, 0.3), (20, 1.0)],
+              config=base)
+    write_run(sweep / "1", task=stack, objects=3, agent="ldm", seed=1, points=[(0, 0.2), (15, 0.5), (30, 0.8)],
+              config={**base, "schedule.total_episodes": 100000, "schedule.max_wall_clock_s": 6600, "logger.backend": "csv"})
+    write_run(sweep / "2", task=stack, objects=3, agent="ldm", seed=0, points=[(0, 0.0), (40, 0.1)], config=other_lr)
+    write_run(tmp_path / "other" / "run", task=bottles, objects=4, agent="fcdqn", seed=3, points=[(0, 0.0), (50, 0.25)],
+              config={"agent.lr.q": 5e-4})
     out = tmp_path / "fig" / "curves.png"
     out.parent.mkdir()
     plot_learning_curves.main([str(sweep), str(tmp_path / "other" / "run"), "--out", str(out)])
     assert out.stat().st_size > 10_000 and "written to" in capsys.readouterr().out
     rows = read_csv(out.with_suffix(".csv"))
-    ldm = [r for r in rows if r["label"] == "LDM"]
+    assert {r["label"] for r in rows} == {"LDM (agent.lr.q=0.0001)", "LDM (agent.lr.q=0.001)", "FC-DQN"}
+    ldm = [r for r in rows if r["label"] == "LDM (agent.lr.q=0.0001)"]
     # the common range ends at the shorter seed's last evaluation (20); seed 1 interpolated at 10 and 20 (0.4, 0.6)
     assert [float(r["episodes"]) for r in ldm] == [0, 10, 15, 20]
     assert [float(r["mean"]) for r in ldm] == pytest.approx([0.1, 0.45, 0.625, 0.8])
     assert [float(r["se"]) for r in ldm] == pytest.approx([0.1, 0.05, 0.125, 0.2])  # |a - b| / 2 for two seeds
     assert {r["n_seeds"] for r in ldm} == {"2"} and {r["task"] for r in ldm} == {stack}
-    variant = [r for r in rows if r["label"] == "LDM (agent.lr.q=0.001)"]
+    variant = [r for r in rows if r["label"] == "LDM (agent.lr.q=0.001)"]  # the agent's other config: its own line
     assert len(variant) == 2 and {r["n_seeds"] for r in variant} == {"1"} and math.isnan(float(variant[0]["se"]))
     single = [r for r in rows if r["task"] == bottles]
     assert [(r["label"], r["num_objects"], float(r["mean"])) for r in single] == [("FC-DQN", "4", 0.0), ("FC-DQN", "4", 0.25)]
