@@ -67,8 +67,9 @@ def _cell(values: list[float], scale: float, digits: int) -> str:
     if not values:
         return "–"
     mean = statistics.fmean(values) * scale
-    std = statistics.stdev(values) * scale if len(values) > 1 else 0.0
-    return f"{mean:.{digits}f} ± {std:.{digits}f} (n={len(values)})"
+    if len(values) == 1:  # one seed: no spread to report
+        return f"{mean:.{digits}f} (n=1)"
+    return f"{mean:.{digits}f} ± {statistics.stdev(values) * scale:.{digits}f} (n={len(values)})"
 
 
 def held_out_sets(runs: list[dict]) -> list[dict]:
