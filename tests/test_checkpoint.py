@@ -232,3 +232,10 @@ def test_periodic_checkpoints_and_load_dynamics_checkpoint(tmp_path):
     save_checkpoint(tmp_path / "agent.pt", {"agent": {}}, meta={"kind": "agent"})
     with pytest.raises(CheckpointError, match="kind is 'agent', expected 'dynamics'"):
         load_dynamics_checkpoint(tmp_path / "agent.pt")
+
+
+def test_dynamics_training_steps_adam_with_its_fused_kernel(tmp_path):
+    """train_dynamics builds its optimiser with ldm_rl.runtime.make_adam (saved param groups say so)."""
+    _, checkpoint = _training(tmp_path, "fused", iterations=2)
+    groups = checkpoint.state["optimizer"]["param_groups"]
+    assert groups and all(group["fused"] is True for group in groups)

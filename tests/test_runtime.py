@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -75,3 +76,32 @@ def test_importing_ldm_rl_stays_light():
         "assert not heavy, heavy"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_make_adam_is_fused_adam_with_the_same_update_rule_and_every_agent_uses_it():
+    from hydra import compose, initialize_config_dir
+
+    from ldm_rl.agents import build_agent
+
+    torch.manual_seed(0)
+    params = [torch.randn(5, 3, requires_grad=True), torch.randn(7, requires_grad=True)]
+    twins = [p.detach().clone().requires_grad_(True) for p in params]
+    fused = runtime.make_adam(params, lr=1e-2, weight_decay=1e-3)
+    plain = torch.optim.Adam(twins, lr=1e-2, weight_decay=1e-3)
+    assert fused.defaults["fused"] is True and fused.defaults["lr"] == 1e-2
+    for step in range(3):
+        for group in (params, twins):
+            for p in group:
+                p.grad = torch.full_like(p, 0.1 * (step + 1)) + p.detach()
+        fused.step()
+        plain.step()
+    for a, b in zip(params, twins):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)  # the same rule; only the last bits may differ
+    with pytest.raises(ValueError, match="learning rate"):
+        runtime.make_adam(params, lr=-1.0)
+    conf = str(Path(__file__).resolve().parents[1] / "conf")
+    for name in ("ldm", "fcdqn", "rs", "dynaq"):
+        with initialize_config_dir(version_base="1.3", config_dir=conf):
+            cfg = compose(config_name="train_policy", overrides=["experiment=smoke", f"agent={name}"])
+        agent = build_agent(cfg, 0.25)
+        assert agent.optimizers and all(opt.defaults["fused"] is True for opt in agent.optimizers.values()), name
