@@ -3,7 +3,8 @@
     python recipes/plot_learning_curves.py multirun/<date>/<time> [more sweeps or run folders] [--out curves.png]
 
 Reads every run below the given folders (a run folder holds ``curve.csv`` and Hydra's ``.hydra/config.yaml``):
-one panel per task (env id and object count), one line per agent, the greedy success rate against training episodes as the mean ± standard error over the agent's seeds. Each seed's curve
+one panel per task (env id and object count), one line per agent, the greedy success rate against training
+episodes as the mean ± standard error over the agent's seeds. Each seed's curve
 (one point per evaluation) is interpolated linearly onto the union of the seeds' episode counts, up to the
 shortest seed's last evaluation, so every plotted point averages all seeds. Runs of one agent are seeds of one
 line when their resolved configs agree on everything but the run's budget and bookkeeping (:data:`BUDGET_KEYS`:
@@ -77,7 +78,7 @@ def _flat(node, prefix: str = "") -> dict[str, str]:
         for key, value in node.items():
             out.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
         return out
-    return {prefix: repr(node)}
+    return {prefix: str(node)}
 
 
 def read_run(folder: Path) -> Run:
