@@ -57,6 +57,11 @@ def winograd_conv3x3(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return y.permute(2, 5, 3, 0, 4, 1).reshape(b, -1, h, w)
 
 
+def phase_bias(m: UnpoolAsConv) -> torch.Tensor:
+    """[C_out, 4] biases of the output phases (row, col) = (0, 0), (0, 1), (1, 0), (1, 1): A, C, B, D."""
+    return torch.stack((m.conv_a.bias, m.conv_c.bias, m.conv_b.bias, m.conv_d.bias), -1)
+
+
 def upconv_transposed(m: UnpoolAsConv, x: torch.Tensor) -> torch.Tensor:
     """UnpoolAsConv as one 5×5 transposed conv (stride 2) + a per-phase bias."""
     kernels = [c.weight.flip(-1, -2).transpose(0, 1) for c in (m.conv_a, m.conv_b, m.conv_c, m.conv_d)]
@@ -65,7 +70,7 @@ def upconv_transposed(m: UnpoolAsConv, x: torch.Tensor) -> torch.Tensor:
         weight[:, :, r::2, c::2] = k
     b, _, h, w = x.shape
     y = F.conv_transpose2d(x, weight, stride=2, padding=2, output_padding=1)
-    bias = torch.stack((m.conv_a.bias, m.conv_c.bias, m.conv_b.bias, m.conv_d.bias), -1).view(1, -1, 1, 2, 1, 2)
+    bias = phase_bias(m).view(1, -1, 1, 2, 1, 2)
     return (y.view(b, -1, h, 2, w, 2) + bias.to(y.dtype)).view(b, -1, 2 * h, 2 * w)
 
 
@@ -73,8 +78,7 @@ def upconv_shuffle(m: UnpoolAsConv, x: torch.Tensor) -> torch.Tensor:
     """UnpoolAsConv as one 3×3 conv with the four kernels zero-padded to 3×3 + pixel_shuffle."""
     weight = torch.stack((m.conv_a.weight, F.pad(m.conv_c.weight, (1, 0, 0, 0)), F.pad(m.conv_b.weight, (0, 0, 1, 0)),
                           F.pad(m.conv_d.weight, (1, 0, 1, 0))), 1).flatten(0, 1)
-    bias = torch.stack((m.conv_a.bias, m.conv_c.bias, m.conv_b.bias, m.conv_d.bias), 1).flatten()
-    return F.pixel_shuffle(F.conv2d(x, weight, bias, padding=1), 2)
+    return F.pixel_shuffle(F.conv2d(x, weight, phase_bias(m).flatten(), padding=1), 2)
 
 
 def best_ms(fn, bf16: bool, repeats: int) -> float:
@@ -144,7 +148,7 @@ def heads_table(threads: int, repeats: int, num_classes: int = 21) -> None:
         for t in workers:
             t.join()
 
-    print(f"| both paper heads, 16 crops each, fwd + bwd | fp32 s | bf16 s |\n|---|---|---|")
+    print("| both paper heads, 16 crops each, fwd + bwd | fp32 s | bf16 s |\n|---|---|---|")
     for name, fn in ((f"one after the other, {threads} intra-op threads", sequential),
                      ("side by side, a Python thread + 1 intra-op thread each", side_by_side)):
         cells = []
