@@ -193,6 +193,7 @@ def train(cfg: DictConfig) -> dict:
                 replay.extend_episode(episode.to(device), expert=True)
             for _ in progress_bar(range(int(s.pretrain_updates)), desc="pretrain LDM", unit="update", enabled=bool(s.progress)):
                 agent.pretrain_update(replay.sample())
+            agent.sync_targets()  # the first targets come from the (pretrained) networks that act
             evaluate(int(s.eval_episodes))
 
         collector = make_collector(cfg.collector, env_factory, agent.policy, device=device, seed=int(cfg.seed))

@@ -42,6 +42,14 @@ class Agent(nn.Module):
         """An update before any acting (default: a full update)."""
         return self.update(batch)
 
+    def sync_targets(self) -> None:
+        """Copy the online networks (weights and buffers) into the target networks now. The training loop
+        calls it once the agent is about to act, after any model-only pretraining, so the first targets
+        come from the networks that act."""
+        updater = getattr(self, "target_updater", None)
+        if updater is not None:
+            updater.sync()
+
     def learning_rates(self) -> dict[str, float]:
         return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}
 

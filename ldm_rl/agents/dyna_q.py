@@ -13,7 +13,7 @@ Each :meth:`DynaQAgent.update` on a replayed batch of B transitions:
    transitions together (imagined rows with importance weight 1); the new priorities are the real rows'.
 
 Imagination uses the online networks in eval mode without gradients (the models' train/eval flags and
-BatchNorm statistics are left as they were). The target Q network, its ``HardUpdate`` and the Q
+BatchNorm statistics are left as they were). The target Q network, its ``TargetSync`` and the Q
 optimiser are FC-DQN's.
 """
 

@@ -11,8 +11,8 @@
   it evaluates the whole ``R·H·W`` map of ``s`` with gradients (R× the trunk passes of
   :meth:`~ldm_rl.models.q_fcn.QFCN.action_values`, which runs only the taken rotation) and squares the TD
   error.
-* Agent (:class:`FCDQNAgent`): one Adam optimiser with StepLR, the Q gradient clamp and TorchRL's
-  ``HardUpdate`` every ``target_update_interval`` updates, as the LDM agent's Q.
+* Agent (:class:`FCDQNAgent`): one Adam optimiser with StepLR, the Q gradient clamp and a
+  :class:`~ldm_rl.objectives.TargetSync` every ``target_update_interval`` updates, as the LDM agent's Q.
 """
 
 from __future__ import annotations
@@ -23,9 +23,10 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
-from torchrl.objectives import HardUpdate, LossModule
+from torchrl.objectives import LossModule
 
 from ldm_rl import keys
+from ldm_rl.objectives.target_sync import TargetSync
 from ldm_rl.objectives.transition_loss import TransitionLoss
 from ldm_rl.agents.base import Agent
 from ldm_rl.planning.planner import ScheduleLike, as_schedule, is_greedy
@@ -126,8 +127,8 @@ class SpatialDQNLoss(TransitionLoss):
             (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
 
     The target network is ``target_q_network_params`` (TorchRL ``convert_to_functional``), synced by a
-    TorchRL target updater (``HardUpdate``); targets run in eval mode without gradients, terminal rows
-    skip the target pass. Writes ``td_error`` ``[B]`` = ``|Q(s, a) − y|`` into the input. Losses are Huber,
+    target updater (:class:`~ldm_rl.objectives.TargetSync`); targets run in eval mode without gradients,
+    terminal rows skip the target pass. Writes ``td_error`` ``[B]`` = ``|Q(s, a) − y|`` into the input. Losses are Huber,
     weighted by ``priority_weight`` when present.
     """
 
@@ -188,8 +189,8 @@ class SpatialDQNLoss(TransitionLoss):
 
 class TargetNetworkAgent(Agent):
     """What the baselines share: one Adam optimiser and StepLR per trained network (``lr`` /
-    ``weight_decay`` dicts keyed by network name), the Q gradient clamp, TorchRL's ``HardUpdate`` of
-    ``loss``'s target networks every ``target_update_interval`` updates, the planner's schedules
+    ``weight_decay`` dicts keyed by network name), the Q gradient clamp, :class:`~ldm_rl.objectives.TargetSync` of
+    ``loss``'s target networks (weights and buffers) every ``target_update_interval`` updates, the planner's schedules
     following the update count, and the target updater's counter in :meth:`training_state`.
 
     ``networks``: name -> module of every network trained here (the optimisers' order)."""
@@ -220,8 +221,7 @@ class TargetNetworkAgent(Agent):
             self.optimizers[name] = make_adam(module.parameters(), lr=lr[name], weight_decay=weight_decay.get(name, 0.0))
             self.lr_schedulers[name] = torch.optim.lr_scheduler.StepLR(self.optimizers[name], lr_decay_every, lr_decay)
         self.q_grad_clip = q_grad_clip
-        # HardUpdate copies on every (k+1)-th step() call
-        self.target_updater = HardUpdate(loss, value_network_update_interval=target_update_interval - 1)
+        self.target_updater = TargetSync(loss, interval=target_update_interval)
 
     @property
     def policy(self) -> StatePolicy:

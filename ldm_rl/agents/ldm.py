@@ -3,18 +3,18 @@
 Each ``update(batch)`` takes one step of three Adam optimizers (Q, V with its reward head, LDM) on:
 the LDM focal loss (:class:`~ldm_rl.objectives.LDMLoss`, whose frame logits also give the predicted next
 state V is fitted on), the Q loss and the V/reward losses with lookahead targets
-(:class:`~ldm_rl.objectives.LookaheadLoss`). Target networks are synced every ``target_update_interval``
-updates by TorchRL's ``HardUpdate``; the LRs decay ×``lr_decay`` every ``lr_decay_every`` updates.
+(:class:`~ldm_rl.objectives.LookaheadLoss`). Target networks (weights and BatchNorm statistics) are copied
+every ``target_update_interval`` updates by :class:`~ldm_rl.objectives.TargetSync`, and by
+:meth:`~ldm_rl.agents.base.Agent.sync_targets`; the LRs decay ×``lr_decay`` every ``lr_decay_every`` updates.
 """
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.objectives import HardUpdate
 
 from ldm_rl.agents.base import Agent
-from ldm_rl.objectives import LDMLoss, LookaheadLoss
+from ldm_rl.objectives import LDMLoss, LookaheadLoss, TargetSync
 from ldm_rl.planning.planner import LookaheadPlanner
 from ldm_rl.runtime import make_adam
 
@@ -55,8 +55,7 @@ class LDMAgent(Agent):
             self.optimizers[name] = make_adam(modules[name].parameters(), lr=lr[name],
                                               weight_decay=weight_decay.get(name, 0.0))
             self.lr_schedulers[name] = torch.optim.lr_scheduler.StepLR(self.optimizers[name], lr_decay_every, lr_decay)
-        # HardUpdate copies on every (k+1)-th step() call
-        self.target_updater = HardUpdate(loss, value_network_update_interval=target_update_interval - 1)
+        self.target_updater = TargetSync(loss, interval=target_update_interval)
         self.q_grad_clip = q_grad_clip
         if autocast not in (None, "bf16"):
             raise ValueError(f"autocast must be None or 'bf16', got {autocast!r}")

@@ -16,7 +16,7 @@ discounted value of what follows ``s`` (no arrival reward, 0 after a terminal st
   two on the LDM's prediction ``f(s, a)``, the kind of state RS scores. Priority: ``|R(s') + γ·V(s') −
   (r + γ·y_V)|``, the error of the taken action's score on the real next state.
 * Agent (:class:`RandomShootingAgent`): the LDM focal loss and this loss on the same batches, two Adam
-  optimisers (``value``: V and its reward head; ``dynamics``: the LDM), StepLR, ``HardUpdate`` of the
+  optimisers (``value``: V and its reward head; ``dynamics``: the LDM), StepLR, ``TargetSync`` of the
   target V and LDM every ``target_update_interval`` updates.
 """
 

@@ -1,7 +1,8 @@
-"""Training objectives: the LDM focal loss and the agent's lookahead Q/V losses."""
+"""Training objectives: the LDM focal loss, the agent's lookahead Q/V losses and their target updater."""
 
 from ldm_rl.objectives.focal import depth_class_weights, focal_loss
 from ldm_rl.objectives.ldm_loss import LDMLoss
+from ldm_rl.objectives.target_sync import TargetSync
 from ldm_rl.objectives.value_lookahead import LookaheadLoss
 
-__all__ = ["LDMLoss", "LookaheadLoss", "focal_loss", "depth_class_weights"]
+__all__ = ["LDMLoss", "LookaheadLoss", "TargetSync", "focal_loss", "depth_class_weights"]

@@ -1,0 +1,123 @@
+"""Target networks equal their source after every copy, BatchNorm statistics included, for every agent."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torchrl.objectives import HardUpdate
+
+from ldm_rl.objectives import LookaheadLoss, TargetSync
+from ldm_rl.runtime import eval_mode
+from policy_helpers import tiny_networks, transitions
+from test_baselines import batch, make_agent
+
+AGENT_NAMES = ("ldm", "fcdqn", "rs", "dynaq")
+
+
+def _outputs(module: torch.nn.Module, probe) -> list[torch.Tensor]:
+    """Eval-mode outputs of a Q network, a V network or an LDM on fixed states (and actions)."""
+    with torch.no_grad(), eval_mode(module):
+        if hasattr(module, "predict"):  # the LDM: next heightmap, in-hand image and hand state
+            pred = module.predict(probe["heightmap"], probe["in_hand"], probe["holding"], probe["action"])
+            return [pred.heightmap, pred.in_hand, pred.holding]
+        if hasattr(module, "action_values"):
+            return [module(probe["heightmap"], probe["in_hand"], probe["holding"])]
+        return [module(probe["heightmap"], probe["in_hand"])]
+
+
+def _online_and_target(loss) -> dict[str, tuple[list[torch.Tensor], list[torch.Tensor]]]:
+    """network name -> (online outputs, target outputs) for every target network of ``loss``."""
+    probe = transitions(6, seed=7)
+    out = {}
+    for name, _ in loss.named_children():
+        if not (name.startswith("target_") and name.endswith("_params")):
+            continue
+        network = name[len("target_"):-len("_params")]
+        module = getattr(loss, network)
+        online = _outputs(module, probe)
+        with getattr(loss, name).to_module(module, preserve_module_state=False):
+            target = _outputs(module, probe)
+        out[network] = (online, target)
+    return out
+
+
+def _assert_targets_equal(loss) -> None:
+    pairs = _online_and_target(loss)
+    assert pairs
+    for network, (online, target) in pairs.items():
+        for a, b in zip(online, target):
+            assert torch.equal(a, b), f"target {network} differs from its source"
+
+
+@pytest.mark.parametrize("name", AGENT_NAMES)
+def test_targets_equal_their_source_after_pretraining_and_a_sync(name):
+    agent = make_agent(name)
+    for seed in range(3):  # model-only updates move the LDM's weights and BatchNorm statistics
+        agent.pretrain_update(batch(4, seed))
+    agent.sync_targets()
+    _assert_targets_equal(agent.loss)
+
+
+@pytest.mark.parametrize("name", AGENT_NAMES)
+def test_targets_equal_their_source_after_every_periodic_copy(name):
+    agent = make_agent(name, "agent.target_update_interval=2")
+    agent.update(batch(4, 0))
+    if name != "fcdqn":  # the first update moved the LDM's BatchNorm statistics (FC-DQN has no LDM)
+        with pytest.raises(AssertionError, match="differs"):
+            _assert_targets_equal(agent.loss)
+    agent.update(batch(4, 1))  # the second update ends with a copy
+    _assert_targets_equal(agent.loss)
+
+
+def test_the_ldm_agent_target_model_carries_the_batchnorm_statistics():
+    agent = make_agent("ldm")
+    for seed in range(3):
+        agent.pretrain_update(batch(4, seed))
+    stale = _online_and_target(agent.loss)["dynamics"]
+    assert not torch.equal(stale[0][0], stale[1][0])  # without a copy the target predicts differently
+    agent.sync_targets()
+    loss = agent.loss
+    for key, value in loss.dynamics_params.items(True, True):
+        if "running" in "".join(map(str, key)):
+            assert torch.equal(loss.target_dynamics_params.get(key), value)
+
+
+def test_torchrl_hard_update_alone_leaves_the_batchnorm_statistics_behind():
+    """Why TargetSync exists: TorchRL's HardUpdate copies only what requires grad."""
+    q, dynamics, value = tiny_networks()
+    loss = LookaheadLoss(q, dynamics, value)
+    updater = HardUpdate(loss, value_network_update_interval=0)  # copies at every step()
+    with torch.no_grad():  # what a train-mode pass does to the running statistics
+        for m in dynamics.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.add_(0.5)
+    updater.step()
+    with pytest.raises(AssertionError, match="differs"):
+        _assert_targets_equal(loss)
+    TargetSync(loss, interval=1).sync()
+    _assert_targets_equal(loss)
+
+
+def test_sync_tells_the_loss_and_step_copies_every_interval():
+    q, dynamics, value = tiny_networks()
+
+    class Loss(LookaheadLoss):
+        changes = 0
+
+        def targets_changed(self):
+            type(self).changes += 1
+
+    loss = Loss(q, dynamics, value)
+    updater = TargetSync(loss, interval=3)
+    for _ in range(7):
+        updater.step()
+    assert Loss.changes == 2  # at the 3rd and 6th step
+    updater.sync()
+    assert Loss.changes == 3 and updater.counter == 1
+
+
+@pytest.mark.parametrize("interval", [0, -1, 1.5, True, None])
+def test_bad_interval(interval):
+    q, dynamics, value = tiny_networks()
+    with pytest.raises(ValueError, match="interval must be a positive int"):
+        TargetSync(LookaheadLoss(q, dynamics, value), interval=interval)
