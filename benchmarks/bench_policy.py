@@ -1,8 +1,17 @@
-"""Agent benchmark: one planner decision, one training update (with its batched lookahead targets),
-replay bytes per transition — paper and lite presets.
+"""Agent benchmark: one training env step of ``experiment=stacking_lite`` split by phase; one planner
+decision, one training update (with its batched lookahead targets), replay bytes per transition — paper
+and lite presets.
 
-    python benchmarks/bench_policy.py                          # both presets, 1 and 2 threads
+    python benchmarks/bench_policy.py --training-step            # stacking_lite env steps, per phase, per lever
+    python benchmarks/bench_policy.py                            # decision/update: both presets, 1 and 2 threads
     python benchmarks/bench_policy.py --presets lite --threads 1 --repeats 5
+
+A training env step (``--training-step``) is what ``recipes/train_policy.py`` does per step: the exploring
+planner's decision on the real PyBullet env, the env step, and ``schedule.updates_per_step`` agent updates
+from the prioritized replay (sample, LDM loss, targets, Q/V losses, backward, Adam, priorities). The replay
+is seeded with the preset's expert episodes and the LDM pretrained as the recipe does; then ``--steps``
+env steps are timed after ``--warmup`` untimed ones, for each lever setting (``--levers``): the bootstrap
+cache off/on and the update-to-data ratio. One thread.
 
 A decision = Q over R rotations → N candidates → LDM on N crops (one head each) → V on N states → argmax
 (``ExplorationType.DETERMINISTIC``), for one state. An update = the LDM focal loss, the lookahead targets
@@ -86,8 +95,139 @@ def timed(fn, repeats: int) -> tuple[float, float, float]:
     return first, min(times), statistics.median(times)
 
 
+PHASES = ("act", "env", "replay", "ldm loss", "targets", "q/v losses", "backward", "optimiser")
+
+
+def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0) -> dict[str, float]:
+    """Mean seconds per env step of each phase (and ``total``) over ``steps`` training env steps of the
+    composed ``train_policy`` config, plus ``first`` (the first step, apart) and the cache hit rate."""
+    import collections
+    import contextlib
+    import pathlib
+    import sys
+
+    from hydra import compose, initialize_config_dir
+    from torchrl.envs.utils import step_mdp
+
+    from ldm_rl.agents import build_agent
+    from ldm_rl.envs import make_env_from_config
+    from ldm_rl.runtime import seed_everything
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "recipes"))
+    from train_policy import TRANSITION_KEYS, expert_episodes, updates_due  # noqa: E402
+
+    with initialize_config_dir(config_dir=str(root / "conf"), version_base="1.3"):
+        cfg = compose(config_name="train_policy", overrides=["experiment=stacking_lite", "schedule.progress=false", *overrides])
+    seed_everything(seed)
+    max_height = float(cfg.env.max_height)
+    agent = build_agent(cfg, max_height)
+    replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=int(cfg.model.num_depth_classes),
+                         return_gamma=float(cfg.agent.gamma) if cfg.agent.return_lower_bound else None,
+                         batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),
+                         priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus))
+    for episode in expert_episodes(cfg):
+        replay.extend_episode(episode, expert=True)
+    for _ in range(int(cfg.schedule.pretrain_updates)):
+        agent.pretrain_update(replay.sample())
+    agent.sync_targets()
+
+    spent: dict[str, float] = collections.defaultdict(float)
+
+    @contextlib.contextmanager
+    def phase(name):
+        start = time.perf_counter()
+        yield
+        spent[name] += time.perf_counter() - start
+
+    def timed_method(obj, name, label, minus=()):
+        method = getattr(obj, name)
+
+        def wrapper(*args, **kwargs):
+            before = sum(spent[m] for m in minus)
+            start = time.perf_counter()
+            out = method(*args, **kwargs)
+            spent[label] += time.perf_counter() - start - (sum(spent[m] for m in minus) - before)
+            return out
+        setattr(obj, name, wrapper)
+
+    timed_method(agent.loss, "targets", "targets")
+    timed_method(agent.loss, "forward", "q/v losses", minus=("targets",))
+    timed_method(agent.dynamics_loss, "forward", "ldm loss")
+    for opt in agent.optimizers.values():
+        timed_method(opt, "step", "optimiser")
+    backward = torch.Tensor.backward
+
+    def timed_backward(tensor, *args, **kwargs):
+        with phase("backward"):
+            return backward(tensor, *args, **kwargs)
+
+    env = make_env_from_config(cfg.env)
+    env.set_seed(seed)
+    td = env.reset()
+    totals, first, episode = [], None, []
+    torch.Tensor.backward = timed_backward
+    try:
+        for n in range(1, warmup + steps + 1):
+            if n == warmup + 1:
+                spent.clear()
+            start = time.perf_counter()
+            with phase("act"), set_exploration_type(ExplorationType.RANDOM):
+                td = agent.policy(td)
+            with phase("env"):
+                td = env.step(td)
+            episode.append(td.select(*TRANSITION_KEYS).clone())
+            td = step_mdp(td)
+            if bool(td.get("done").any()):  # the finished episode goes into the replay, as in the recipe
+                with phase("replay"):
+                    replay.extend_episode(torch.stack(episode))
+                episode.clear()
+                td = env.reset()
+            for _ in range(updates_due(n, float(cfg.schedule.updates_per_step))):
+                with phase("replay"):
+                    batch = replay.sample()
+                agent.update(batch)
+                with phase("replay"):
+                    replay.update_priority(batch["index"], batch["td_error"])
+            elapsed = time.perf_counter() - start
+            if n == 1:
+                first = elapsed
+            if n > warmup:
+                totals.append(elapsed)
+    finally:
+        torch.Tensor.backward = backward
+    out = {name: spent[name] / steps for name in PHASES}
+    out.update(total=statistics.fmean(totals), first=first, median=statistics.median(totals))
+    cache = getattr(agent.loss, "bootstrap_cache", None)
+    out["hit_rate"] = cache.hit_rate if cache is not None else float("nan")
+    return out
+
+
+def training_step_table(levers: list[str], steps: int, warmup: int) -> None:
+    """Print the per-phase split of a stacking_lite training env step for each lever setting."""
+    torch.set_num_threads(1)
+    rows = []
+    for lever in levers:
+        overrides = [item for item in lever.split(",") if item]
+        result = training_steps(overrides, steps, warmup)
+        rows.append((lever or "(preset as shipped)", result))
+        print(f"{lever or '(preset)':60s} {result['total']:.3f} s per env step", flush=True)
+    print(f"\n| stacking_lite, 1 thread, mean s per env step over {steps} steps | " + " | ".join(PHASES)
+          + " | total | first step | cache hit rate |")
+    print("|---" * (len(PHASES) + 4) + "|")
+    for lever, r in rows:
+        print(f"| {lever} | " + " | ".join(f"{r[name]:.3f}" for name in PHASES)
+              + f" | **{r['total']:.3f}** | {r['first']:.2f} | {r['hit_rate']:.2f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--training-step", action="store_true", help="time stacking_lite training env steps by phase")
+    parser.add_argument("--levers", nargs="+", default=[
+        "agent.bootstrap_cache=0,schedule.updates_per_step=1", "schedule.updates_per_step=1", ""],
+        help="comma-separated Hydra overrides per setting ('' = the preset as shipped)")
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--warmup", type=int, default=10)
     parser.add_argument("--presets", nargs="+", default=["lite", "paper"])
     parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--repeats", type=int, default=3)
@@ -97,6 +237,9 @@ def main() -> None:
     parser.add_argument("--autocast", nargs="+", default=["none"], choices=["none", "bf16"],
                         help="planner.autocast / agent.autocast settings to time (bf16: Q and LDM under bf16 autocast)")
     args = parser.parse_args()
+    if args.training_step:
+        training_step_table(args.levers, args.steps, args.warmup)
+        return
 
     rows = []
     state = TensorDict(scenes(1), batch_size=[1])

@@ -365,6 +365,8 @@ class AgentConfig:
     q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")
     autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="ldm: autocast of the update's forward passes")
     return_lower_bound: bool = spec(False, doc="raise the targets to the return the episode collected")
+    bootstrap_cache: int = spec(0, ge=0, doc="ldm: transitions whose bootstrap is kept until the next target copy "
+                                "(0 = off)")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -388,6 +390,14 @@ class AgentConfig:
                                  f"(agent.name={node.name})")
         if node.name != "ldm" and node.autocast is not None:
             found.append(f"{prefix}autocast={_show(node.autocast)} is set but only agent=ldm uses it (agent.name={node.name})")
+        cache = node.get("bootstrap_cache", 0)
+        if cache and node.name != "ldm":
+            found.append(f"{prefix}bootstrap_cache={cache} is set but only agent=ldm caches its bootstraps "
+                         f"(agent.name={node.name}); set it to 0")
+        elif cache and node.target_proposal.mode != "argmax":
+            found.append(f"{prefix}bootstrap_cache={cache} needs deterministic target proposals: "
+                         f"{prefix}target_proposal.mode={node.target_proposal.mode} draws new ones every update "
+                         "(use argmax, or bootstrap_cache=0)")
         bounds = node.target_range
         if bounds is not None and not (len(bounds) == 2 and bounds[0] < bounds[1]):
             found.append(f"{prefix}target_range={_show(bounds)}: must be null or [low, high] with low < high")
@@ -446,7 +456,7 @@ class ScheduleConfig:
     pretrain_updates: int = spec(0, ge=0, doc="LDM-only updates before acting")
     total_episodes: int = spec(ge=1, doc="training episodes")
     max_wall_clock_s: Optional[float] = spec(None, gt=0, doc="stop after this many seconds")
-    updates_per_step: int = spec(ge=1, doc="updates per environment step")
+    updates_per_step: float = spec(gt=0, le=64, doc="updates per environment step (a fraction: every k-th step)")
     eval_every: int = spec(ge=1, doc="updates between evaluations")
     eval_episodes: int = spec(ge=1, doc="episodes per evaluation")
     final_eval_episodes: int = spec(ge=1, doc="episodes of the final evaluation")

@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import shutil
 import sys
 import time
 from collections import deque
+from fractions import Fraction
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -54,6 +56,13 @@ def expert_episodes(cfg: DictConfig) -> list:
                           noise=OmegaConf.to_container(s.expert_noise, resolve=True), progress=bool(s.progress))
     lengths = torch.unique_consecutive(demos["episode"], return_counts=True)[1].tolist()
     return list(demos.select(*TRANSITION_KEYS).split(lengths))
+
+
+def updates_due(env_steps: int, updates_per_step: float) -> int:
+    """Updates after the ``env_steps``-th step: ``⌊n·u⌋ − ⌊(n−1)·u⌋`` in exact rational arithmetic, so a
+    fraction u spreads its updates evenly (0.5: one every second step) and depends on the counter alone."""
+    rate = Fraction(str(float(updates_per_step)))
+    return math.floor(env_steps * rate) - math.floor((env_steps - 1) * rate)
 
 
 def write_curve(rows: list[dict], out_dir, title: str) -> None:
@@ -169,6 +178,7 @@ def train(cfg: DictConfig) -> dict:
                  "curve": curve, "recent": list(recent), "wall_s": time.perf_counter() - start, "best": dict(best),
                  "rng": capture_rng_state({"replay": replay.generator}), "replay_dir": replay_dir}
         save_checkpoint(checkpoint_path, state, meta=meta)
+        agent.drop_caches()  # a run resumed from here starts without them: recompute exactly as it will
         for old in out_dir.glob("replay-*"):
             if old.name != replay_dir:
                 shutil.rmtree(old, ignore_errors=True)
@@ -219,7 +229,7 @@ def train(cfg: DictConfig) -> dict:
                 bar.set_postfix(updates=agent.updates, success_last100=f"{sum(recent) / len(recent):.2f}", **budget,
                                 refresh=False)
                 bar.update(1)
-            for _ in range(int(s.updates_per_step)):
+            for _ in range(updates_due(counters["env_steps"], s.updates_per_step)):
                 batch = replay.sample()
                 metrics = agent.update(batch)
                 replay.update_priority(batch["index"], batch["td_error"])

@@ -102,10 +102,13 @@ def _per_candidate_scores(loss, batch):
     from ldm_rl.planning.lookahead import lookahead
 
     state = [batch["next", key] for key in ("heightmap", "in_hand", "holding")]
-    with torch.no_grad(), loss.target_networks():
-        q_map = loss.q_network.eval()(*state)
-        cands = sample_candidates(q_map, loss.num_target_candidates, **loss.target_proposal)
-        return lookahead(loss.dynamics, loss._target_and_online_value, *state, cands).values.unbind(-1)
+    with torch.no_grad():
+        with loss.target_networks():
+            q_map = loss.q_network.eval()(*state)
+            cands = sample_candidates(q_map, loss.num_target_candidates, **loss.target_proposal)
+            result = lookahead(loss.dynamics, loss.value_network, *state, cands, with_states=True)
+        online = loss.value_network.eval()(result.next_heightmap.flatten(0, 1), result.next_in_hand.flatten(0, 1))
+    return result.values, online.reshape(result.values.shape)
 
 
 def test_double_value_scores_the_online_choice_with_the_target_network():
@@ -161,3 +164,58 @@ def test_return_lower_bound_raises_both_targets_to_the_collected_return(q_target
     assert v_bound[0] > v_plain[0] and torch.equal(v_bound[1:3], v_plain[1:3])
     with pytest.raises(KeyError, match="needs 'return_to_go' in the batch: sample from FrameReplay"):
         bounded.targets(transitions(2))
+
+
+def _cached_and_plain(**kwargs):
+    return make_loss(bootstrap_cache=64, **kwargs), make_loss(**kwargs)
+
+
+@pytest.mark.parametrize("double_value", [False, True])
+def test_cached_targets_equal_fresh_ones_until_and_after_a_target_copy(double_value):
+    from ldm_rl.objectives import TargetSync
+
+    cached, plain = _cached_and_plain(double_value=double_value, q_target="max")
+    first = transitions(6, seed=0, terminated=torch.zeros(6, 1, dtype=torch.bool))
+    first["index"] = torch.arange(6)
+    second = transitions(6, seed=5, terminated=torch.zeros(6, 1, dtype=torch.bool))
+    second["index"] = torch.tensor([4, 5, 6, 7, 8, 9])  # rows 4, 5: same index, another next state (slot reused)
+    for batch in (first, second, first, second):
+        for got, want in zip(cached.targets(batch), plain.targets(batch)):
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    assert cached.bootstrap_cache.hits > 0
+    updaters = [TargetSync(loss, interval=1) for loss in (cached, plain)]
+    for loss in (cached, plain):  # the online networks move on; V's online choice changes at once
+        with torch.no_grad():
+            for p in loss.value_network.parameters():
+                p.mul_(-1.5)
+            for p in loss.q_network.parameters():
+                p.mul_(0.5)
+    for got, want in zip(cached.targets(first), plain.targets(first)):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    for updater in updaters:  # the copy clears the cache: the new target networks are used
+        updater.sync()
+    assert len(cached.bootstrap_cache) == 0
+    for got, want in zip(cached.targets(first), plain.targets(first)):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_cached_rows_skip_the_target_networks():
+    cached = make_loss(bootstrap_cache=64)
+    batch = transitions(4, terminated=torch.zeros(4, 1, dtype=torch.bool))
+    batch["index"] = torch.arange(4)
+    cached.targets(batch)
+    calls = []
+    hook = cached.q_network.register_forward_hook(lambda *args: calls.append(1))
+    cached.targets(batch)
+    assert not calls and cached.bootstrap_cache.hit_rate == 0.5  # 4 misses, then 4 hits
+    del batch["index"]  # no replay index: nothing to key on, computed afresh
+    cached.targets(batch)
+    hook.remove()
+    assert calls
+
+
+def test_bootstrap_cache_needs_deterministic_target_proposals():
+    with pytest.raises(ValueError, match="bootstrap_cache=8 needs deterministic target proposals"):
+        make_loss(bootstrap_cache=8, target_proposal={"mode": "softmax"})
+    with pytest.raises(ValueError, match="bootstrap_cache must be an int >= 0"):
+        make_loss(bootstrap_cache=-1)

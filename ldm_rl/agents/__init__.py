@@ -53,6 +53,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         double_value=bool(agent_cfg.get("double_value", False)),
         q_target=str(agent_cfg.get("q_target", "max")),
         return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)),
+        bootstrap_cache=int(agent_cfg.get("bootstrap_cache") or 0),
     )
     loss_cfg = _plain(cfg["loss"])
     class_weights = loss_cfg.get("class_weights")

@@ -50,6 +50,14 @@ class Agent(nn.Module):
         if updater is not None:
             updater.sync()
 
+    def drop_caches(self) -> None:
+        """Forget what the losses cache (the bootstrap cache): recomputing gives the same targets, up to the
+        last float bits of a different batch composition. The training loop drops them at each checkpoint,
+        so a resumed run, which starts without them, computes bit for bit what the uninterrupted one does."""
+        cache = getattr(getattr(self, "loss", None), "bootstrap_cache", None)
+        if cache is not None:
+            cache.clear()
+
     def learning_rates(self) -> dict[str, float]:
         return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}
 

@@ -99,6 +99,8 @@ class LDMAgent(Agent):
         self.planner.set_step(self.updates)
         metrics = {key: float(value.detach()) for key, value in out.items()}
         metrics.update(loss_dynamics=float(dyn["loss_dynamics"].detach()), pixel_accuracy=float(dyn["pixel_accuracy"]))
+        if self.loss.bootstrap_cache is not None:
+            metrics["bootstrap_hit_rate"] = self.loss.bootstrap_cache.hit_rate
         return metrics
 
     def training_state(self) -> dict:

@@ -38,10 +38,10 @@ R/2: the map rotates by +90°); tabulating ``geometry.rotate(x, θ_k)`` directly
 
 Speed (CPU; other devices run the whole batch at once, NCHW). The trunk runs in chunks of
 ``CHUNK_IMAGES`` images (whole samples): the time per image grows ~2–3× from 8 to 256 images a pass.
-Without gradients the features are channels_last (1.5–2× faster) and the hand kernel is applied by one
-dense conv per sample. With gradients they stay NCHW (one grouped conv): on torch 2.13 CPU (oneDNN
-3.12) the backward of a channels_last strided 1×1 conv with fewer than 16 input channels (the lite
-shortcut 8→16) segfaults.
+The trunk's features are channels_last (forward 1.5–2×, forward + backward 2–4× faster for these narrow
+convs; the strided shortcuts run as unstrided 1×1 convs on every second pixel, see ``BasicBlock``).
+Without gradients the hand kernel is applied by one dense conv per sample, with gradients by one grouped
+conv on NCHW features (its backward is ~3× faster than the per-sample loop's).
 """
 
 from __future__ import annotations
@@ -195,7 +195,7 @@ class QFCN(nn.Module):
     def _trunk(self, x: torch.Tensor) -> torch.Tensor:
         """[M, 1, H, W] encoded scenes -> [M, C, H, W] features."""
         inp = self.conv_1(x)
-        if x.device.type == "cpu" and not torch.is_grad_enabled():  # see the module docstring (channels_last)
+        if x.device.type == "cpu":  # see the module docstring (channels_last)
             inp = inp.contiguous(memory_format=torch.channels_last)  # the later layers keep the format
         d1 = self.layer_1(inp)
         d2 = self.layer_2(d1)
@@ -214,7 +214,7 @@ class QFCN(nn.Module):
         """[n, r, C, H, W] features, [n, 1, 24, 24] encoded hands -> [n, r, H, W] place maps."""
         n, r, c, h, w = feat.shape
         kernels = self._hand_kernels(in_hand)  # [n, C, C, 3, 3]
-        if _channels_last(feat[0]):  # one dense conv per sample over its r images: ~3x faster than grouped
+        if _channels_last(feat[0]) and not torch.is_grad_enabled():  # a dense conv per sample: ~3x faster than grouped
             y = torch.cat([F.conv2d(feat[i], kernels[i], padding=1) for i in range(n)])
         else:  # one grouped conv (its backward is ~3x faster than the per-sample loop's)
             kernels = kernels.unsqueeze(1).expand(n, r, c, c, 3, 3).reshape(n * r * c, c, 3, 3)
@@ -234,7 +234,10 @@ class QFCN(nn.Module):
         n_pick = n - n_place
         parts = []
         if n_pick:
-            parts.append(self.pick_head(feat[:n_pick].flatten(0, 1)).view(n_pick, r, h, w))
+            pick = feat[:n_pick].flatten(0, 1)
+            if _channels_last(feat[0]):  # the flattened view lost the format flag: 4-5x slower head convs
+                pick = pick.contiguous(memory_format=torch.channels_last)
+            parts.append(self.pick_head(pick).view(n_pick, r, h, w))
         if n_place:
             parts.append(self._place(feat[n_pick:], in_hand.index_select(0, place_rows) if n_pick else in_hand))
         if len(parts) == 1:

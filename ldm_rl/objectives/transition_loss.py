@@ -28,6 +28,7 @@ class TransitionKeys:
     priority: NestedKey = "td_error"
     priority_weight: NestedKey = "priority_weight"
     return_to_go: NestedKey = "return_to_go"
+    index: NestedKey = "index"  # the replay's row index (a TorchRL replay sample's "index"): cache key
 
 
 class TransitionLoss(LossModule):

@@ -27,6 +27,7 @@ Priorities (reference): ``td_error = |V(s') − y_V|`` per sample, written into 
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -35,7 +36,8 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.utils import NestedKey
 from torch import nn
 
-from ldm_rl import keys
+from ldm_rl import geometry, keys
+from ldm_rl.objectives.bootstrap_cache import BootstrapCache
 from ldm_rl.objectives.transition_loss import TransitionKeys, TransitionLoss
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
@@ -68,6 +70,9 @@ class LookaheadLoss(TransitionLoss):
         q_target: ``"max"`` (the paper: ``r + γ max Q⁻(s')``) or ``"lookahead"`` (``y_Q = y_V``).
         return_lower_bound: raise both targets to the batch's ``return_to_go`` where it is higher
             (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
+        bootstrap_cache: keep up to this many transitions' bootstraps (keyed by the batch's ``index``)
+            until the next target copy (:class:`~ldm_rl.objectives.BootstrapCache`; 0 = off). The
+            targets are the same; only rows not seen since the last copy run the target networks.
     """
 
     @dataclass
@@ -104,6 +109,7 @@ class LookaheadLoss(TransitionLoss):
         double_value: bool = False,
         q_target: str = "max",
         return_lower_bound: bool = False,
+        bootstrap_cache: int = 0,
     ) -> None:
         super().__init__()
         self.return_lower_bound = bool(return_lower_bound)
@@ -123,6 +129,13 @@ class LookaheadLoss(TransitionLoss):
         self.gamma, self.num_target_candidates = float(gamma), num_target_candidates
         self.target_proposal = {"mode": "argmax", "tau": 1.0, "beta": 1.0, "sigma": 2.0, "sigma_rot": 1.0, **(target_proposal or {})}
         self.value_on_prediction, self.chunk_size = bool(value_on_prediction), int(chunk_size)
+        if not isinstance(bootstrap_cache, int) or isinstance(bootstrap_cache, bool) or bootstrap_cache < 0:
+            raise ValueError(f"bootstrap_cache must be an int >= 0 (0 = off), got {bootstrap_cache!r}")
+        if bootstrap_cache and self.target_proposal["mode"] != "argmax":
+            raise ValueError(f"bootstrap_cache={bootstrap_cache} needs deterministic target proposals "
+                             f"(target_proposal mode 'argmax'), got mode {self.target_proposal['mode']!r}")
+        self.bootstrap_cache = BootstrapCache(bootstrap_cache, max_height=dynamics.max_height,
+                                              num_classes=dynamics.num_classes) if bootstrap_cache else None
 
     @property
     def out_keys(self) -> list[str]:
@@ -137,6 +150,11 @@ class LookaheadLoss(TransitionLoss):
                 self.target_dynamics_params.to_module(self.dynamics, preserve_module_state=False):
             yield
 
+    def targets_changed(self) -> None:
+        """Called by :class:`~ldm_rl.objectives.TargetSync` after each copy: the cached bootstraps are stale."""
+        if self.bootstrap_cache is not None:
+            self.bootstrap_cache.clear()
+
     @torch.no_grad()
     def targets(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """``(y_Q, y_V)``, each ``[B, 1]`` float32, for a flat batch of transitions (target networks)."""
@@ -150,16 +168,16 @@ class LookaheadLoss(TransitionLoss):
             heightmap = tensordict.get((keys.NEXT, k.heightmap)).index_select(0, rows)
             in_hand = tensordict.get((keys.NEXT, k.in_hand)).index_select(0, rows)
             holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1, 1).bool().index_select(0, rows)
-            with self.target_networks(), eval_mode(self.q_network, self.value_network, self.dynamics):
-                q_map = self.q_network(heightmap, in_hand, holding).float()  # float32 also under bf16 autocast
-                candidates = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)
-                scorer = self._target_and_online_value if self.double_value else self.value_network
-                scores = lookahead(self.dynamics, scorer, heightmap, in_hand, holding, candidates,
-                                   chunk_size=self.chunk_size).values.float()
-            q_next[rows] = q_map.flatten(1).amax(1, keepdim=True)
+            index = tensordict.get(k.index, None)
+            boot = self._bootstrap(None if index is None else index.reshape(-1).index_select(0, rows),
+                                   heightmap, in_hand, holding)
+            q_next[rows] = boot["q_max"]
+            scores = boot["target_values"]
+            if self.double_value:  # (target V, online V) of each predicted state: [b, N, 2]
+                scores = torch.stack((scores, self._online_values(boot)), -1)
             if self.target_range is not None:  # a state's value is a return too: bootstrap from values in range
                 scores, q_next = scores.clamp(*self.target_range), q_next.clamp(*self.target_range)
-            if self.double_value:  # scores [b, N, 2]: (target V, online V) of each predicted state
+            if self.double_value:
                 best = scores[..., 1].argmax(1, keepdim=True)
                 v_next[rows] = scores[..., 0].gather(1, best)
             else:
@@ -170,12 +188,58 @@ class LookaheadLoss(TransitionLoss):
             y_q, y_v = y_q.clamp(*self.target_range), y_v.clamp(*self.target_range)
         return y_q, y_v
 
-    def _target_and_online_value(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> torch.Tensor:
-        """``[M, 2]``: V under the target weights (loaded inside ``target_networks``) and the online ones."""
-        target = self.value_network(heightmap, in_hand)
-        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
-            online = self.value_network(heightmap, in_hand)
-        return torch.cat([target, online], 1)
+    def _bootstrap(self, index, heightmap, in_hand, holding) -> dict[str, torch.Tensor]:
+        """What the target networks say about the next states ``[b]``, from the cache where it has them:
+        ``q_max [b, 1]``, ``target_values [b, N]`` (target V of each proposal's predicted state) and, for
+        ``double_value``, the predicted states as depth classes ``next_heightmap [b, N, 1, H, W]`` and
+        ``next_in_hand [b, N, 1, h, h]`` (uint8)."""
+        cache = self.bootstrap_cache if index is not None else None
+        if cache is None:
+            return self._fresh_bootstrap(heightmap, in_hand, holding)
+        slot, found = cache.lookup(index, heightmap, in_hand, holding)
+        miss = (~found).nonzero().squeeze(1)
+        if miss.numel() == found.numel():
+            fresh = self._fresh_bootstrap(heightmap, in_hand, holding)
+            cache.put(index, heightmap, in_hand, holding, fresh)
+            return fresh
+        hit = found.nonzero().squeeze(1)
+        out = {name: cache.get(slot.index_select(0, hit), name) for name in self._bootstrap_names()}
+        if miss.numel():
+            parts = [x.index_select(0, miss) for x in (heightmap, in_hand, holding)]
+            fresh = self._fresh_bootstrap(*parts)
+            cache.put(index.index_select(0, miss), *parts, fresh)
+            out = {name: torch.empty((found.numel(), *value.shape[1:]), dtype=value.dtype, device=value.device)
+                   .index_copy_(0, hit, value).index_copy_(0, miss, fresh[name]) for name, value in out.items()}
+        return out
+
+    def _bootstrap_names(self) -> tuple[str, ...]:
+        return ("q_max", "target_values") + (("next_heightmap", "next_in_hand") if self.double_value else ())
+
+    def _fresh_bootstrap(self, heightmap, in_hand, holding) -> dict[str, torch.Tensor]:
+        """:meth:`_bootstrap` computed with the target networks, in one batched pass."""
+        with self.target_networks(), eval_mode(self.q_network, self.value_network, self.dynamics):
+            q_map = self.q_network(heightmap, in_hand, holding).float()  # float32 also under bf16 autocast
+            candidates = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)
+            result = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
+                               chunk_size=self.chunk_size, with_states=self.double_value)
+        out = {"q_max": q_map.flatten(1).amax(1, keepdim=True), "target_values": result.values.float()}
+        if self.double_value:  # V reads heights as depth classes: uint8 classes are exact and 4x smaller
+            classes = geometry.heights_to_classes
+            out["next_heightmap"] = classes(result.next_heightmap, self.dynamics.max_height, self.dynamics.num_classes).to(torch.uint8)
+            out["next_in_hand"] = classes(result.next_in_hand, self.dynamics.max_height, self.dynamics.num_classes).to(torch.uint8)
+        return out
+
+    def _online_values(self, boot: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``[b, N]``: the online V of the predicted states in ``boot`` (eval mode, chunks of ``chunk_size``)."""
+        b, n = boot["target_values"].shape
+        decode = functools.partial(geometry.classes_to_heights, max_height=self.dynamics.max_height,
+                                   num_classes=self.dynamics.num_classes)
+        heightmap, in_hand = boot["next_heightmap"].flatten(0, 1), boot["next_in_hand"].flatten(0, 1)
+        with eval_mode(self.value_network):
+            values = [self.value_network(decode(heightmap[i : i + self.chunk_size].long()),
+                                         decode(in_hand[i : i + self.chunk_size].long())).float()
+                      for i in range(0, b * n, self.chunk_size)]
+        return torch.cat(values).reshape(b, n)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys.require_keys(tensordict, self.in_keys, type(self).__name__)

@@ -25,6 +25,8 @@ class LookaheadResult(NamedTuple):
     values: torch.Tensor  # [B, N] float32: V(f(s, a)) ([B, N, K] for a value network with K outputs)
     rewards: torch.Tensor | None  # [B, N] float32: R(f(s, a)) (reward head), when asked for
     next_holding: torch.Tensor  # [B, N] bool: predicted hand state after the action
+    next_heightmap: torch.Tensor | None = None  # [B, N, 1, H, W] float32 m: predicted next scenes, when asked for
+    next_in_hand: torch.Tensor | None = None  # [B, N, 1, h, h] float32 m: predicted in-hand images, when asked for
 
 
 def lookahead(
@@ -38,6 +40,7 @@ def lookahead(
     chunk_size: int = 64,
     with_reward: bool = False,
     dynamics_autocast: bool = False,
+    with_states: bool = False,
 ) -> LookaheadResult:
     """Score ``candidates`` ``[B, N, 3]`` int64 (row, col, rot) of the states ``heightmap``
     ``[B, 1, 128, 128]`` f32 m, ``in_hand`` ``[B, 1, 24, 24]`` f32 m, ``holding`` ``[B, 1]`` bool.
@@ -46,7 +49,8 @@ def lookahead(
     (heightmap, in_hand) to ``[M, 1]`` values (or ``[M, K]``: K scores per state, e.g. under two sets of
     weights, giving ``values`` ``[B, N, K]``; a plain callable runs in the mode its caller set) and offers ``value_and_reward`` when ``with_reward``.
     ``dynamics_autocast``: the LDM predicts under bf16 autocast (the paper preset's heavy convolutions;
-    measured slower for the lite preset), V still scores in float32.
+    measured slower for the lite preset), V still scores in float32. ``with_states``: also return the
+    predicted next states (``next_heightmap``, ``next_in_hand``).
     """
     if not torch.is_tensor(candidates) or candidates.dim() != 3 or candidates.shape[-1] != 3:
         shape = tuple(candidates.shape) if torch.is_tensor(candidates) else type(candidates).__name__
@@ -59,7 +63,7 @@ def lookahead(
     flat_actions = candidates.reshape(b * n, 3).long()
     owner = torch.arange(b, device=candidates.device).repeat_interleave(n)  # state row of each pair
     holding = holding.reshape(b, 1).bool()
-    values, rewards, next_holding = [], [], []
+    values, rewards, next_holding, states = [], [], [], []
     with eval_mode(*(m for m in (dynamics, value_network) if isinstance(m, nn.Module))):
         for start in range(0, b * n, chunk_size):
             rows = owner[start : start + chunk_size]
@@ -77,9 +81,13 @@ def lookahead(
                 value = value_network(pred.heightmap.float(), pred.in_hand.float())
             values.append(value.reshape(value.shape[0], -1))
             next_holding.append(pred.holding.reshape(-1))
+            if with_states:
+                states.append((pred.heightmap.float(), pred.in_hand.float()))
     values = torch.cat(values)
+    next_states = [torch.cat(part).reshape(b, n, *part[0].shape[1:]) for part in zip(*states)] if with_states else [None, None]
     return LookaheadResult(
         values.reshape(b, n) if values.shape[1] == 1 else values.reshape(b, n, -1),
         torch.cat(rewards).reshape(b, n) if with_reward else None,
         torch.cat(next_holding).reshape(b, n),
+        *next_states,
     )
