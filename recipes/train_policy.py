@@ -1,7 +1,7 @@
 """Train an agent online (agent=ldm: the paper's Q → LDM → V lookahead) and evaluate its greedy policy.
 
     python recipes/train_policy.py                                     # LDM agent, 3-block stacking, lite
-    python recipes/train_policy.py experiment=stacking_lite            # the 2-hour CPU acceptance run
+    python recipes/train_policy.py experiment=stacking_lite            # the 40-minute CPU acceptance run
     python recipes/train_policy.py env=house_building schedule.total_episodes=5000
     python recipes/train_policy.py -m seed=0,1 experiment=stacking_lite
 

@@ -154,6 +154,11 @@ BAD_COMMANDS = [
     ("train_dynamics.py", ["dynamics.data=demos/typo"], "error: dynamics.data='demos/typo' is invalid: must be null or an existing path"),
     ("train_dynamics.py", ["resume=true"], "error: resume=true continues a run in its folder: add hydra.run.dir="),
     ("generate_demos.py", ["resume=true"], "error: resume=true: generate_demos has nothing to resume"),
+    ("train_policy.py", ["agent.target_proposal.mode=softmax"],
+     "error: agent.bootstrap_cache=4096 needs deterministic target proposals: agent.target_proposal.mode=softmax"),
+    ("train_policy.py", ["agent=fcdqn", "agent.bootstrap_cache=8"],
+     "error: agent.bootstrap_cache=8 is set but only agent=ldm caches its bootstraps (agent.name=fcdqn)"),
+    ("train_policy.py", ["schedule.updates_per_step=0"], "error: schedule.updates_per_step=0.0 is out of range"),
 ]
 
 

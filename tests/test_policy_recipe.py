@@ -139,3 +139,15 @@ def test_sigterm_saves_and_exits_with_one_line(tmp_path):
     last = stderr.strip().splitlines()[-1]
     assert last.startswith("stopped by SIGTERM at episode") and "resume=true" in last
     assert (run_dir / "checkpoint.pt").exists() and len(list(run_dir.glob("replay-*"))) == 1
+
+
+@pytest.mark.parametrize("rate, pattern", [(1, [1, 1, 1, 1]), (2, [2, 2, 2, 2]), (0.5, [0, 1, 0, 1]),
+                                           (0.25, [0, 0, 0, 1]), (1.5, [1, 2, 1, 2])])
+def test_updates_due_spreads_a_fractional_update_rate_evenly(rate, pattern):
+    sys.path.insert(0, str(ROOT / "recipes"))
+    try:
+        from train_policy import updates_due
+    finally:
+        sys.path.remove(str(ROOT / "recipes"))
+    assert [updates_due(n, rate) for n in range(1, 5)] == pattern
+    assert sum(updates_due(n, 0.35) for n in range(1, 1001)) == 350  # exact rational arithmetic: no drift
