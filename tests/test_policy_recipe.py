@@ -82,8 +82,9 @@ def test_train_policy_config_composes_every_group():
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose(config_name="train_policy", overrides=["experiment=stacking_lite"])
     assert cfg.agent.name == "ldm" and cfg.planner.num_candidates == 10 and cfg.replay.alpha == 0.6
-    assert cfg.schedule.max_wall_clock_s == 6600 and cfg.threads == 1 and cfg.env.num_objects == 3
+    assert cfg.schedule.max_wall_clock_s == 2160 and cfg.threads == 1 and cfg.env.num_objects == 3
     assert cfg.agent.num_target_candidates == 3 and cfg.schedule.pretrain_updates == 200
+    assert cfg.schedule.updates_per_step == 0.5 and cfg.agent.bootstrap_cache == 4096
 
 
 @pytest.mark.slow
