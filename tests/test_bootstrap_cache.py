@@ -58,6 +58,16 @@ def test_heights_are_kept_as_exact_depth_classes():
     assert classes.dtype == torch.uint8 and torch.equal(cache.heights(classes), hm)
 
 
+def test_rows_must_agree():
+    cache = BootstrapCache(8, max_height=MAX_HEIGHT, num_classes=CLASSES)
+    hm, hand, holding = states(3, 4)
+    with pytest.raises(ValueError, match="index must be an integer tensor"):
+        cache.lookup(torch.arange(2), hm, hand, holding)
+    with pytest.raises(ValueError, match="index must be an integer tensor"):
+        cache.put(torch.arange(3.0), hm, hand, holding, {"v": torch.zeros(3)})
+    assert len(cache) == 0
+
+
 @pytest.mark.parametrize("kwargs, match", [({"capacity": 0}, "capacity must be a positive int"),
                                           ({"capacity": 4, "num_classes": 300}, "num_classes must be in")])
 def test_bad_arguments(kwargs, match):

@@ -121,3 +121,17 @@ def test_bad_interval(interval):
     q, dynamics, value = tiny_networks()
     with pytest.raises(ValueError, match="interval must be a positive int"):
         TargetSync(LookaheadLoss(q, dynamics, value), interval=interval)
+
+
+def test_the_ldm_agent_caches_bootstraps_until_a_copy_or_a_checkpoint():
+    agent = make_agent("ldm", "agent.target_update_interval=2")
+    data = batch(4, 0)
+    data["index"] = torch.arange(4)
+    agent.loss.targets(data)
+    assert len(agent.loss.bootstrap_cache) > 0
+    agent.drop_caches()  # what the recipe does at each checkpoint
+    assert len(agent.loss.bootstrap_cache) == 0
+    agent.update(data.clone())
+    assert len(agent.loss.bootstrap_cache) > 0
+    agent.update(data.clone())  # ends with a target copy
+    assert len(agent.loss.bootstrap_cache) == 0

@@ -64,6 +64,12 @@ class BootstrapCache:
         return geometry.classes_to_heights(classes.long(), self.max_height, self.num_classes)
 
     def _key(self, index, heightmap, in_hand, holding) -> dict[str, torch.Tensor]:
+        rows = index.numel() if torch.is_tensor(index) else None
+        sizes = [x.shape[0] if torch.is_tensor(x) and x.dim() else None for x in (heightmap, in_hand, holding)]
+        if rows is None or index.is_floating_point() or sizes != [rows] * 3:
+            raise ValueError(f"index must be an integer tensor [B] with heightmap, in_hand and holding of B rows; got "
+                             f"index {tuple(index.shape) if torch.is_tensor(index) else type(index).__name__} and "
+                             f"{sizes} rows")
         return {"index": index.reshape(-1).long(), "heightmap": self.classes(heightmap), "in_hand": self.classes(in_hand),
                 "holding": holding.reshape(-1).bool()}
 
