@@ -89,6 +89,47 @@ def test_experiment_presets_compose_and_set_what_they_say(preset):
         config_schema.validate_config(cfg)
 
 
+_IDENTITY_KEYS = ("id", "name", "backend")  # the key that says which option of a group is in the config
+
+
+def _group_choices(config_name: str):
+    """(group, option, identity key, its value) for every option of every group of a primary config whose
+    options carry an identity key (``logger.backend``, ``env.id``, ``agent.name``, ``model.name``)."""
+    defaults = OmegaConf.to_container(OmegaConf.load(CONF / f"{config_name}.yaml")).get("defaults", [])
+    groups = [next(iter(d)) for d in defaults if isinstance(d, dict)]
+    for group in groups:
+        if group in ("schema", "experiment") or not (CONF / group).is_dir():
+            continue
+        for option in sorted(p.stem for p in (CONF / group).glob("*.yaml")):
+            raw = OmegaConf.load(CONF / group / f"{option}.yaml")
+            for key in _IDENTITY_KEYS:
+                if key in raw:
+                    yield group, option, key, raw[key]
+                    break
+
+
+def _presets_of_configs_with_groups():
+    """Presets whose recipe's primary config selects groups (evaluate.yaml has none to select)."""
+    for file in sorted((CONF / "experiment").glob("*.yaml")):
+        if any(True for _ in _group_choices(_primary_config_of(file.read_text()))):
+            yield file.stem
+
+
+@pytest.mark.parametrize("preset", list(_presets_of_configs_with_groups()))
+def test_an_explicit_group_choice_wins_over_every_preset(preset):
+    """``experiment=<preset> logger=tensorboard`` logs to TensorBoard: no preset overwrites the key that names a
+    group's option, so whatever the command line selects is what runs (smoke used to set logger.backend)."""
+    config_name = _primary_config_of((CONF / "experiment" / f"{preset}.yaml").read_text())
+    defaults = OmegaConf.to_container(OmegaConf.load(CONF / f"{config_name}.yaml")).get("defaults", [])
+    plus = "" if any(isinstance(d, dict) and "experiment" in d for d in defaults) else "+"
+    checked = 0
+    for group, option, key, value in _group_choices(config_name):
+        cfg = make_cfg(f"{plus}experiment={preset}", f"{group}={option}", config_name=config_name)
+        assert cfg[group][key] == value, f"experiment={preset} {group}={option} composed {group}.{key}={cfg[group][key]!r}"
+        checked += 1
+    assert checked >= 4, f"{config_name}: no group with an identity key found"
+
+
 def test_unknown_option_is_rejected():
     with pytest.raises(ConfigCompositionException):
         make_cfg("logger=nonexistent")
