@@ -17,12 +17,12 @@ import sys
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from ldm_rl.config_schema import check_command_line  # registers the schema
 
 log = logging.getLogger(__name__)
-REPO = Path(__file__).resolve().parents[1]
 DPI = 100
 
 
@@ -37,7 +37,8 @@ def main(cfg: DictConfig) -> None:
 
     require_matplotlib()
     task_name = str(cfg.env.id).split("/")[-1].split("-")[0]
-    out = Path(cfg.demos.strip.out) if cfg.demos.strip.out else REPO / "docs" / "img" / f"expert_{task_name}.png"
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    out = Path(cfg.demos.strip.out) if cfg.demos.strip.out else run_dir / f"expert_{task_name}.png"
     if out.suffix.lower() != ".png":
         raise ValueError(f"demos.strip.out must end in .png, got {str(out)!r}")
     register_envs()

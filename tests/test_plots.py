@@ -259,3 +259,22 @@ def test_episode_steps_carry_the_planner_outputs_and_the_world_models_prediction
                                                  rollout["action"][:1]).heightmap[0, 0]
     assert torch.equal(first["predicted_heightmap"], expected)
     assert np.isfinite(first["reward"])
+
+
+def test_render_expert_strip_writes_into_its_run_folder_not_the_repository(tmp_path):
+    """The recipe's default output is the run folder; docs/img is written only when asked for."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    pytest.importorskip("matplotlib")
+    root = Path(__file__).resolve().parents[1]
+    docs_img = sorted((root / "docs" / "img").iterdir())
+    mtimes = [p.stat().st_mtime for p in docs_img]
+    run = tmp_path / "run"
+    result = subprocess.run([sys.executable, str(root / "recipes" / "render_expert_strip.py"), "env=block_stacking",
+                             f"hydra.run.dir={run}", "demos.strip.scale=1"], cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert (run / "expert_BlockStacking.png").stat().st_size > 0
+    assert sorted((root / "docs" / "img").iterdir()) == docs_img
+    assert [p.stat().st_mtime for p in docs_img] == mtimes
