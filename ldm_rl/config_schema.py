@@ -830,7 +830,12 @@ def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, s
             elif run_dir_given and checkpoint.is_file():
                 try:
                     meta = read_checkpoint_meta(checkpoint)
-                    where = f" (iteration {meta.get('iteration')}/{meta.get('iterations')})"
+                    if meta.get("iteration") is not None:
+                        where = f" (iteration {meta['iteration']}/{meta.get('iterations')})"
+                    elif meta.get("episodes") is not None:
+                        where = f" (episode {meta['episodes']}, {meta.get('updates')} updates)"
+                    else:
+                        where = ""
                 except CheckpointError:
                     where = ""
                 _fail(f"{run_dir} already holds a run's checkpoint{where}: continue it with resume=true, or choose a new "

@@ -40,6 +40,7 @@ __all__ = ["progress_bar", "progress_mode", "LOGGER_NAME"]
 
 LOGGER_NAME = "ldm_rl.progress"
 _MODES = ("bar", "lines", "off")
+_SECONDS_PER_UNIT = {"s": 1.0, "min": 60.0, "h": 3600.0}  # bars whose total is a time budget
 
 
 def progress_mode(stream: IO | None = None) -> str:
@@ -154,10 +155,13 @@ class _LoggedProgress(tqdm):
         new = n - d.get("initial", 0)
         rate = d["rate"] if d["rate"] else (new / elapsed if elapsed > 0 and new > 0 else None)
         parts = [f"elapsed {self.format_interval(elapsed)}"]
-        if total:
+        if total and unit in _SECONDS_PER_UNIT:  # a time budget: what is left of it, not an extrapolation
+            remaining = (total - n) * _SECONDS_PER_UNIT[unit]
+            parts.append(f"ETA {self.format_interval(remaining)}")
+        elif total:
             remaining = (total - n) / rate if rate else None
             parts.append(f"ETA {self.format_interval(remaining) if remaining is not None else '?'}")
-        if rate:
+        if rate and unit not in _SECONDS_PER_UNIT:  # a time budget's "60 s/min" says nothing
             parts.append(f"{1 / rate:.3g} s/{unit}" if rate < 1 else f"{rate:.3g} {unit}/s" if rate < 1000 else f"{rate:,.0f} {unit}/s")
         if d.get("postfix"):
             parts.append(str(d["postfix"]))

@@ -186,7 +186,7 @@ def train(cfg: DictConfig) -> dict:
             "seed": int(cfg.seed), "data_sha256": fingerprint, "config": config, "max_height": max_height,
             "threads": torch.get_num_threads(), "device": str(device), "torch": torch.__version__,
             "ldm_rl": ldm_rl.__version__}
-    with StopSignals() as stop:
+    with StopSignals("the current iteration") as stop:
         final = train_dynamics(
             model, loss, train_set, val, out_dir=out_dir, settings=settings, iterations=int(d.iterations),
             batch_size=int(d.batch_size), lr=float(d.lr), lr_decay=float(d.lr_decay), lr_decay_every=int(d.lr_decay_every),

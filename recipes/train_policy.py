@@ -177,13 +177,14 @@ def train(cfg: DictConfig) -> dict:
         state = {"agent": agent.state_dict(), "training": agent.training_state(), "counters": dict(counters),
                  "curve": curve, "recent": list(recent), "wall_s": time.perf_counter() - start, "best": dict(best),
                  "rng": capture_rng_state({"replay": replay.generator}), "replay_dir": replay_dir}
-        save_checkpoint(checkpoint_path, state, meta=meta)
+        save_checkpoint(checkpoint_path, state, meta={**meta, "episodes": counters["episodes"], "updates": agent.updates})
         agent.drop_caches()  # a run resumed from here starts without them: recompute exactly as it will
         for old in out_dir.glob("replay-*"):
             if old.name != replay_dir:
                 shutil.rmtree(old, ignore_errors=True)
 
-    with StopSignals() as stop:  # from here on SIGINT/SIGTERM stop at the next episode end, with a checkpoint
+    # from here on SIGINT/SIGTERM stop at the next episode end, with a checkpoint
+    with StopSignals("the current episode (up to its step limit)") as stop:
         if resuming:
             checkpoint = load_checkpoint(checkpoint_path, expect={k: meta[k] for k in ("kind", "agent", "preset", "task")},
                                          map_location=device)
@@ -212,8 +213,18 @@ def train(cfg: DictConfig) -> dict:
             restore_rng_state(checkpoint.state["rng"], {"replay": replay.generator})
         next_eval = (agent.updates // int(s.eval_every) + 1) * int(s.eval_every)
         next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
-        bar = progress_bar(total=int(s.total_episodes), initial=counters["episodes"], desc="train", unit="episode",
-                           enabled=bool(s.progress))
+        budget_min = None if s.max_wall_clock_s is None else float(s.max_wall_clock_s) / 60
+
+        def minutes() -> float:
+            return (time.perf_counter() - start) / 60
+
+        if budget_min is None:  # the episode budget bounds the run
+            bar = progress_bar(total=int(s.total_episodes), initial=counters["episodes"], desc="train", unit="episode",
+                               enabled=bool(s.progress))
+        else:  # the wall-clock budget bounds it (total_episodes is a cap): progress in its unit, minutes
+            bar = progress_bar(total=round(budget_min, 2), initial=round(min(minutes(), budget_min), 2),
+                               desc="train (wall-clock budget)", unit="min", enabled=bool(s.progress),
+                               bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} min [{elapsed}<{remaining}{postfix}]")
         rate_t, rate_steps, rate_updates = time.perf_counter(), counters["env_steps"], agent.updates
         for step in collected_steps(collector):  # one transition at a time; worker weights refreshed per batch
             episode = episodes.add(step)
@@ -223,12 +234,10 @@ def train(cfg: DictConfig) -> dict:
                 replay.extend_episode(episode)
                 counters["episodes"] += 1
                 recent.append(float(bool(step["next", "terminated"]) and float(step["next", "reward"]) > 0))
-                # the bar's ETA counts episodes; with a wall-clock budget the budget usually ends the run first
-                budget = {} if s.max_wall_clock_s is None else {
-                    "budget_left": f"{max(0.0, float(s.max_wall_clock_s) - (time.perf_counter() - start)) / 60:.0f} min"}
-                bar.set_postfix(updates=agent.updates, success_last100=f"{sum(recent) / len(recent):.2f}", **budget,
+                done = {} if budget_min is None else {"episodes": counters["episodes"]}
+                bar.set_postfix(**done, updates=agent.updates, success_last100=f"{sum(recent) / len(recent):.2f}",
                                 refresh=False)
-                bar.update(1)
+                bar.update(1 if budget_min is None else round(min(minutes(), budget_min) - bar.n, 2))
             for _ in range(updates_due(counters["env_steps"], s.updates_per_step)):
                 batch = replay.sample()
                 metrics = agent.update(batch)
@@ -249,13 +258,16 @@ def train(cfg: DictConfig) -> dict:
             wall_over = s.max_wall_clock_s is not None and time.perf_counter() - start >= float(s.max_wall_clock_s)
             finished = counters["episodes"] >= int(s.total_episodes) or wall_over
             if agent.updates >= next_checkpoint or stop.requested or finished:
-                save()
+                with stop.saving():
+                    save()
                 next_checkpoint = (agent.updates // int(s.checkpoint_every) + 1) * int(s.checkpoint_every)
             if stop.requested:
                 shutdown_collector(collector)
                 bar.close()
+                position = None if budget_min is None else (
+                    f"episode {counters['episodes']}, {minutes():.1f} of {budget_min:.1f} min of the wall-clock budget")
                 raise RunStopped(stop.signal_name, counters["episodes"], int(s.total_episodes), checkpoint_path,
-                                 unit="episode")
+                                 unit="episode", position=position)
             if finished:
                 break
     bar.close()
@@ -274,9 +286,11 @@ def train(cfg: DictConfig) -> dict:
         log.info(f"best in-training evaluation ({100 * best['success_rate']:.0f}% at {best['updates']} updates, "
                  f"{best['wall_s'] / 60:.1f} min) -> {BEST_NAME}: {result} on held-out scenes")
     close_logger(logger)
+    summary["total_wall_s"] = time.perf_counter() - start  # training and every final evaluation
     atomic_write_text(out_dir / "final_metrics.json", json.dumps(summary, indent=2))
     log.info(f"done: greedy success {100 * final['success_rate']:.1f}% over {final['eval_episodes']} episodes "
-             f"after {counters['episodes']} episodes / {final['wall_s'] / 60:.1f} min -> {out_dir}")
+             f"after {counters['episodes']} training episodes / {final['wall_s'] / 60:.1f} min; "
+             f"{summary['total_wall_s'] / 60:.1f} min in all with the final evaluations -> {out_dir}")
     return summary
 
 

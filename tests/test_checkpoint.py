@@ -161,6 +161,22 @@ def test_stop_signals_set_a_flag_then_a_second_signal_aborts():
     stopped = ck.RunStopped("SIGTERM", 30, 400, "run/checkpoint.pt")
     assert str(stopped) == "stopped by SIGTERM at iteration 30/400; checkpoint saved to run/checkpoint.pt"
     assert stopped.exit_code == 143
+    budget = ck.RunStopped("SIGINT", 24, 100000, "c.pt", unit="episode", position="episode 24, 12.0 of 36.0 min")
+    assert str(budget) == "stopped by SIGINT at episode 24, 12.0 of 36.0 min; checkpoint saved to c.pt"
+
+
+def test_the_first_signal_says_what_it_waits_for_and_a_second_never_cuts_a_save(capsys):
+    with ck.StopSignals("the current episode") as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert capsys.readouterr().err.startswith("SIGTERM: stopping after the current episode, then saving a checkpoint")
+        written = []
+        with pytest.raises(SystemExit) as exited:
+            with stop.saving():
+                os.kill(os.getpid(), signal.SIGTERM)  # arrives half-way through the save
+                written.append("the rest of the checkpoint")
+        assert written == ["the rest of the checkpoint"] and exited.value.code == 128 + signal.SIGTERM
+        err = capsys.readouterr().err
+        assert "aborting once the checkpoint being written is complete" in err and "aborted without a new checkpoint" in err
 
 
 def test_importing_the_checkpoint_module_stays_light():

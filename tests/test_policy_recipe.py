@@ -124,12 +124,15 @@ def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path)
 
 @pytest.mark.slow
 def test_sigterm_saves_and_exits_with_one_line(tmp_path):
+    """A wall-clock-bound run: progress in minutes of its budget, the first signal says what the run waits
+    for, the stop line names the budget, and the folder then refuses a fresh start naming the episode."""
     import signal
     import time
 
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "train_policy.py"), "experiment=smoke",
-                             "schedule.total_episodes=50", f"hydra.run.dir={run_dir}"], env=ENV, cwd=tmp_path,
+    command = [sys.executable, str(ROOT / "recipes" / "train_policy.py"), "experiment=smoke", "schedule.total_episodes=50",
+               "schedule.max_wall_clock_s=3600", "schedule.progress=true", f"hydra.run.dir={run_dir}"]
+    proc = subprocess.Popen(command, env={**ENV, "LDM_RL_PROGRESS": "lines"}, cwd=tmp_path,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 600
     while not (run_dir / "curve.csv").exists() and time.time() < deadline:  # set-up is done
@@ -137,9 +140,21 @@ def test_sigterm_saves_and_exits_with_one_line(tmp_path):
     proc.send_signal(signal.SIGTERM)
     _, stderr = proc.communicate(timeout=600)
     assert proc.returncode == 143
-    last = stderr.strip().splitlines()[-1]
-    assert last.startswith("stopped by SIGTERM at episode") and "resume=true" in last
+    lines = stderr.strip().splitlines()
+    assert any(line.startswith("SIGTERM: stopping after the current episode") for line in lines), stderr[-3000:]
+    progress = (run_dir / "train_policy.log").read_text()  # the progress lines of a non-terminal run
+    import re
+
+    assert re.search(r"train \(wall-clock budget\): [0-9.]+/60.0 min \(0%\) \[elapsed [0-9:]+, ETA (59|60):", progress), \
+        progress[-3000:]
+    assert "/50 episode" not in progress  # the episode cap does not bound this run
+    last = lines[-1]
+    assert last.startswith("stopped by SIGTERM at episode ") and " of 60.0 min of the wall-clock budget" in last, last
+    assert "resume=true" in last
     assert (run_dir / "checkpoint.pt").exists() and len(list(run_dir.glob("replay-*"))) == 1
+    again = subprocess.run(command, env=ENV, cwd=tmp_path, capture_output=True, text=True)
+    assert again.returncode == 2 and len(again.stderr.strip().splitlines()) == 1, again.stderr
+    assert "already holds a run's checkpoint (episode " in again.stderr and " updates): continue it with resume=true" in again.stderr
 
 
 @pytest.mark.parametrize("rate, pattern", [(1, [1, 1, 1, 1]), (2, [2, 2, 2, 2]), (0.5, [0, 1, 0, 1]),

@@ -9,6 +9,8 @@ resume, a clean stop on SIGINT/SIGTERM).
 
 from __future__ import annotations
 
+import contextlib
+
 import logging
 import time
 from pathlib import Path
@@ -272,7 +274,8 @@ def train_dynamics(
         }
         meta = {"kind": "dynamics", **dict(checkpoint_meta or {}), "iteration": iteration, "iterations": iterations,
                 "complete": iteration == iterations, "metrics": rows[-1] if rows else None}
-        return save_checkpoint(checkpoint_path, state, meta=meta)
+        with stop.saving() if stop is not None else contextlib.nullcontext():
+            return save_checkpoint(checkpoint_path, state, meta=meta)
 
     loss_module.train()
     bar = progress_bar(total=iterations, initial=done, desc="train dynamics", unit="it", enabled=progress)
