@@ -138,6 +138,78 @@ def group(cls: type) -> Any:
     return field(default_factory=cls)
 
 
+# ------------------------------------------------------------------------- light pre-flight facts
+
+_LOGGER_MODULES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
+
+
+class MissingExtraError(ImportError):
+    """An optional backend's package is not installed; the one-line message names the extra to install."""
+
+
+def require_logger_backend(backend: str) -> None:
+    """Raise :class:`MissingExtraError` (one line naming the extra) if ``backend``'s package is missing."""
+    import importlib.util
+
+    module = _LOGGER_MODULES.get(backend)
+    if module is None:
+        return
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a broken install, or a module set to None in sys.modules
+        found = False
+    if not found:
+        raise MissingExtraError(f"logger={backend} needs the {module!r} package, which is not installed: "
+                                f"pip install 'ldm_rl[{backend}]' (from a clone: pip install -e '.[{backend}]')")
+
+
+# objects each task accepts (the envs raise the same for other counts: tests/test_config.py checks both agree)
+OBJECT_COUNTS = {"ldm_rl/HouseBuilding-v0": (3, 3), "ldm_rl/BottleArrangement-v0": (1, 6)}
+
+
+def machine_problems(cfg: DictConfig, *, checkpoint_kind: str | None = None) -> list[str]:
+    """What a valid config asks of this machine and its files that they cannot give, found without torch: a
+    logger package that is not installed, a device without a driver, an ``evaluate.py`` checkpoint that is not
+    an agent's (``checkpoint_kind="agent"``: the kind the config's ``checkpoint`` must hold). Checked by :func:`check_command_line` before a run starts (not by :func:`validate_config`: a
+    config stays valid on another machine)."""
+    from ldm_rl.checkpoint import CheckpointError, read_checkpoint_meta  # light: no torch
+
+    found = []
+    backend = OmegaConf.select(cfg, "logger.backend")
+    if backend is not None:
+        try:
+            require_logger_backend(str(backend))
+        except MissingExtraError as err:
+            found.append(str(err))
+    device = OmegaConf.select(cfg, "device")
+    problem = _device_problem(str(device)) if device is not None else None
+    if problem:
+        found.append(problem)
+    checkpoint = OmegaConf.select(cfg, "checkpoint")
+    if checkpoint_kind is not None and checkpoint is not None:
+        try:
+            kind = read_checkpoint_meta(checkpoint).get("kind")
+        except (CheckpointError, OSError) as err:
+            return found + [f"checkpoint={checkpoint}: {err}"]
+        if kind != checkpoint_kind:
+            found.append(f"checkpoint={checkpoint} holds a {kind or 'kindless'} checkpoint: this recipe reads an "
+                         f"{checkpoint_kind}'s (a checkpoint.pt of recipes/train_policy.py)")
+    return found
+
+
+def _device_problem(device: str) -> str | None:
+    """A device this machine visibly cannot have, found without importing torch (the runtime checks the rest)."""
+    import os
+    import platform
+
+    drivers = ("/dev/nvidiactl", "/proc/driver/nvidia/version", "/dev/kfd")  # NVIDIA, ROCm
+    if str(device).startswith("cuda") and platform.system() == "Linux" and not any(os.path.exists(p) for p in drivers):
+        return f"device={device}: this machine has no NVIDIA driver (no /dev/nvidiactl); use device=cpu or device=auto"
+    if device == "mps" and platform.system() != "Darwin":
+        return f"device=mps: Apple's MPS exists only on macOS, this is {platform.system()}; use device=cpu or device=auto"
+    return None
+
+
 # ------------------------------------------------------------------------------------ the schema
 
 
@@ -151,6 +223,14 @@ class EnvConfig:
     num_rotations: int = spec(8, ge=2, multiple_of=2, doc="rotation bins k*pi/R")
     max_height: float = spec(gt=0, le=1, doc="metres of the top depth class")
     demo_procedure: str = spec("direct", choices=("direct", "deconstruct"), doc="expert demo procedure")
+
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        low, high = OBJECT_COUNTS.get(node.id, (1, None))
+        if node.num_objects < low or (high is not None and node.num_objects > high):
+            allowed = f"exactly {low}" if low == high else f"in {low}..{high}"
+            return [f"{prefix}num_objects={node.num_objects}: {node.id} takes {allowed} objects"]
+        return []
 
 
 @dataclass
@@ -517,7 +597,7 @@ class RenderConfig:
 class EvaluateConfig(RunSettings):
     """``conf/evaluate.yaml``: ``recipes/evaluate.py``."""
 
-    checkpoint: str = spec(exists=True, doc="a checkpoint.pt written by recipes/train_policy.py")
+    checkpoint: str = spec(exists=True, allowed="an existing file", doc="a checkpoint.pt written by recipes/train_policy.py")
     episodes: int = spec(ge=1, doc="greedy episodes")
     num_objects: Optional[int] = spec(None, ge=1, doc="objects (null = the checkpoint's)")
     max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode (null = 2*objects + 4)")
@@ -581,11 +661,10 @@ def _problems(node: DictConfig, schema: type, prefix: str) -> list[str]:
     hints = typing.get_type_hints(schema)
     for f in dataclasses.fields(schema):
         key = prefix + f.name
-        if f.name not in node:
-            found.append(f"{key} is missing")
-            continue
-        if OmegaConf.is_missing(node, f.name):
-            found.append(f"{key} is missing (???): set it")
+        if f.name not in node or OmegaConf.is_missing(node, f.name):
+            rule = f.metadata.get("rule")
+            what = f" ({rule.doc})" if rule is not None and rule.doc else ""
+            found.append(f"{key} is missing: set {key}=<value>{what}")
             continue
         sub = _nested_schema(hints[f.name])
         try:
@@ -846,6 +925,10 @@ def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, s
             validate_config(cfg, schema)
         except ConfigError as err:
             _fail(str(err))
+        if not show:
+            problems = machine_problems(cfg, checkpoint_kind="agent" if issubclass(schema, EvaluateConfig) else None)
+            if problems:
+                _fail("; ".join(problems))
         if resume and checkpoint is not None and checkpoint.is_file():
             try:
                 meta = read_checkpoint_meta(checkpoint)

@@ -15,6 +15,8 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 import torch
 
+from ldm_rl.config_schema import MissingExtraError, require_logger_backend  # light: the pre-flight checks them too
+
 __all__ = [
     "seed_everything",
     "resolve_device",
@@ -122,29 +124,8 @@ def hydra_output_dir(default: str | os.PathLike = ".") -> Path:
 
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 # backend -> the module it imports (the pip extra of ldm_rl that installs it has the backend's name)
-_LOGGER_MODULES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
 # wandb.init modes: online (needs `wandb login`), offline (no account; `wandb sync` later), disabled
 WANDB_MODES = ("online", "offline", "disabled")
-
-
-class MissingExtraError(ImportError):
-    """An optional backend's package is not installed; the one-line message names the extra to install."""
-
-
-def require_logger_backend(backend: str) -> None:
-    """Raise :class:`MissingExtraError` (one line naming the extra) if ``backend``'s package is missing."""
-    import importlib.util
-
-    module = _LOGGER_MODULES.get(backend)
-    if module is None:
-        return
-    try:
-        found = importlib.util.find_spec(module) is not None
-    except (ImportError, ValueError):  # a broken install, or a module set to None in sys.modules
-        found = False
-    if not found:
-        raise MissingExtraError(f"logger={backend} needs the {module!r} package, which is not installed: "
-                                f"pip install 'ldm_rl[{backend}]' (from a clone: pip install -e '.[{backend}]')")
 
 
 def _flat_hparams(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

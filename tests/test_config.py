@@ -2,6 +2,7 @@
 (ldm_rl.config_schema) stops wrong types, out-of-range values and contradictions in one line, before any
 work and without an output folder."""
 
+import importlib.util
 import re
 import subprocess
 import sys
@@ -200,6 +201,17 @@ BAD_COMMANDS = [
     ("train_policy.py", ["agent=fcdqn", "agent.bootstrap_cache=8"],
      "error: agent.bootstrap_cache=8 is set but only agent=ldm caches its bootstraps (agent.name=fcdqn)"),
     ("train_policy.py", ["schedule.updates_per_step=0"], "error: schedule.updates_per_step=0.0 is out of range"),
+    ("train_policy.py", ["env=house_building", "env.num_objects=9"],
+     "error: env.num_objects=9: ldm_rl/HouseBuilding-v0 takes exactly 3 objects"),
+    ("train_dynamics.py", ["env=bottle_arrangement", "env.num_objects=7"],
+     "error: env.num_objects=7: ldm_rl/BottleArrangement-v0 takes in 1..6 objects"),
+    ("evaluate.py", [], "error: checkpoint is missing: set checkpoint=<value> (a checkpoint.pt written by recipes/train_policy.py)"),
+    ("evaluate.py", ["checkpoint=runs/typo.pt"], "error: checkpoint='runs/typo.pt' is invalid: must be an existing file"),
+    pytest.param("train_policy.py", ["device=cuda"], "error: device=cuda: this machine has no NVIDIA driver",
+                 marks=pytest.mark.skipif(any(Path(p).exists() for p in ("/dev/nvidiactl", "/proc/driver/nvidia/version",
+                                                                           "/dev/kfd")), reason="a GPU driver is here")),
+    pytest.param("train_dynamics.py", ["logger=mlflow"], "error: logger=mlflow needs the 'mlflow' package, which is not installed",
+                 marks=pytest.mark.skipif(importlib.util.find_spec("mlflow") is not None, reason="mlflow is installed")),
 ]
 
 
@@ -211,6 +223,32 @@ def test_a_bad_config_stops_in_one_line_without_an_output_folder(recipe, args, e
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], done.stderr
     assert list(tmp_path.iterdir()) == [], "a failed command must not leave files behind"
+
+
+def test_evaluate_refuses_a_dynamics_checkpoint_in_one_line(tmp_path):
+    from ldm_rl.checkpoint import save_checkpoint
+
+    dynamics = save_checkpoint(tmp_path / "ldm" / "checkpoint.pt", {"model": {}}, meta={"kind": "dynamics"})
+    work = tmp_path / "work"
+    work.mkdir()
+    done = run_recipe(ROOT / "recipes" / "evaluate.py", f"checkpoint={dynamics}", cwd=work)
+    assert done.returncode == 2 and list(work.iterdir()) == [], done.stderr
+    assert done.stderr.strip() == (f"error: checkpoint={dynamics} holds a dynamics checkpoint: this recipe reads an agent's "
+                                   "(a checkpoint.pt of recipes/train_policy.py)")
+
+
+def test_the_preflight_object_counts_are_the_envs_own():
+    """OBJECT_COUNTS refuses exactly what the envs refuse (one count past each end)."""
+    import gymnasium as gym
+
+    from ldm_rl.envs import register_envs
+
+    register_envs()
+    for env_id, (low, high) in config_schema.OBJECT_COUNTS.items():
+        for count in (low - 1, high + 1):
+            with pytest.raises(ValueError, match="num_objects"):
+                gym.make(env_id, num_objects=count).unwrapped.close()
+        gym.make(env_id, num_objects=high).unwrapped.close()
 
 
 def test_the_command_line_check_imports_no_torch():
