@@ -428,6 +428,7 @@ class AgentConfig:
     name: str = spec(choices=("ldm", "fcdqn", "rs", "dynaq"), doc="the agent (ldm_rl.agents.AGENTS)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="Q/V size; null = model.preset")
     q_width: Optional[float] = spec(None, gt=0, le=4, doc="Q channel multiplier override")
+    q_frame_margin: int = spec(0, ge=0, lt=32, doc="pixels at each Q gripper frame's edge never proposed (0 = none)")
     value_width: Optional[float] = spec(None, gt=0, le=4, doc="V channel multiplier override")
     gamma: float = spec(ge=0, le=1, doc="discount of the targets")
     num_target_candidates: int = spec(ge=1, doc="N of the V target's max")

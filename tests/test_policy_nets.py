@@ -115,6 +115,31 @@ def test_pixels_no_rotated_frame_covers_are_never_proposable():
     assert torch.isfinite(maps.flatten(1).gather(1, best[:, None])).all()
 
 
+def test_a_frame_margin_masks_the_band_at_each_gripper_frames_edge_and_keeps_the_equivariance():
+    """frame_margin=m: at quarter-turn bins the m-pixel image border is -inf, the rest finite; at other bins the
+    band runs along the rotated frame's edge (inside the image); quarter turns still commute bit for bit;
+    a different margin gives the same weights and the same values wherever both are finite."""
+    torch.manual_seed(0)
+    q = QFCN(MAX_HEIGHT, 21, 8, 0.125, frame_margin=6)
+    plain = QFCN(MAX_HEIGHT, 21, 8, 0.125)
+    plain.load_state_dict(q.state_dict())
+    scene, in_hand, holding = states(3, seed=5)
+    with torch.no_grad():
+        maps, reference = q(scene, in_hand, holding), plain(scene, in_hand, holding)
+        plus = q(g.rotate(scene, math.pi / 2), in_hand, holding)
+    for k in (0, 4):
+        assert torch.isneginf(maps[:, k, :6]).all() and torch.isneginf(maps[:, k, :, -6:]).all()
+        assert torch.isfinite(maps[:, k, 6:-6, 6:-6]).all()
+    band = torch.isneginf(maps[:, 1]) & torch.isfinite(reference[:, 1])
+    assert band.any() and not band[:, 30:98, 30:98].any()  # a band along the rotated edge, not in the centre
+    both = torch.isfinite(maps)
+    assert torch.equal(maps[both], reference[both]) and (both <= torch.isfinite(reference)).all()
+    maps_, plus_ = (t.nan_to_num(neginf=-1e30) for t in (maps, plus))
+    assert torch.equal(plus_[:, :4], g.rotate(maps_[:, 4:], math.pi / 2))
+    with pytest.raises(ValueError, match="frame_margin must be an int in"):
+        QFCN(MAX_HEIGHT, frame_margin=-1)
+
+
 def _capture(q: QFCN):
     """Hooks recording the trunk inputs and the pick head's outputs (gripper frames), in batch order."""
     seen = {"inputs": [], "maps": []}

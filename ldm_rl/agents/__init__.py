@@ -39,7 +39,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     dynamics = build_dynamics_model(cfg["model"], max_height)
     preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
     common = {"max_height": float(max_height), "num_classes": dynamics.num_classes}
-    q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"), **common)
+    q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"),
+                                frame_margin=int(agent_cfg.get("q_frame_margin") or 0), **common)
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"), **common)
     planner = LookaheadPlanner(q_network, dynamics, value_network, **_plain(cfg["planner"]))
     loss = LookaheadLoss(
@@ -87,7 +88,8 @@ def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
     preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
     model = cfg["model"]
     return build_q_network(preset, max_height=float(max_height), num_classes=int(model.get("num_depth_classes", 21)),
-                           num_rotations=int(model.get("num_rotations", 8)), width=agent_cfg.get("q_width"))
+                           num_rotations=int(model.get("num_rotations", 8)), width=agent_cfg.get("q_width"),
+                           frame_margin=int(agent_cfg.get("q_frame_margin") or 0))
 
 
 def _model_and_value(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):

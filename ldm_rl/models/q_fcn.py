@@ -79,7 +79,7 @@ def _map_head(channels: int, width: float) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(channels, hidden, 3, padding=1), nn.LeakyReLU(LEAKY_SLOPE), nn.Conv2d(hidden, 1, 1))
 
 
-def _rotation_tables(num_rotations: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _rotation_tables(num_rotations: int, size: int, margin: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Nearest-pixel gather tables ``[R, size²]`` (int64, flat index + 1; 0 = outside the frame).
 
     ``scene[k][p]``: the scene pixel that the trunk of bin k sees at p, i.e. ``rotate(x, θ_k)``;
@@ -89,6 +89,8 @@ def _rotation_tables(num_rotations: int, size: int) -> tuple[torch.Tensor, torch
     ``geometry.rotate`` by φ: the scene is quarter-turned first, the map last. So bin k + R/2 of a
     scene and bin k of the same scene quarter-turned read identical trunk inputs, and their maps come
     back quarter-turned exactly. Built by rotating an image of pixel ids (exact in ``nearest`` mode).
+    ``margin`` > 0 also marks as outside every map pixel that falls within ``margin`` pixels of its
+    gripper frame's edge (the band where the trunk's convolutions read their zero padding).
     """
     ids = torch.arange(1, size * size + 1, dtype=torch.int64).view(1, size, size)
     scene, maps = [], []
@@ -97,7 +99,12 @@ def _rotation_tables(num_rotations: int, size: int) -> tuple[torch.Tensor, torch
         phi = (2 * k - q * num_rotations) * math.pi / (2 * num_rotations)
         scene.append(geometry.rotate(torch.rot90(ids, -q, (-2, -1)), phi, mode="nearest"))
         maps.append(torch.rot90(geometry.rotate(ids, -phi, mode="nearest"), q, (-2, -1)))
-    return torch.stack(scene).view(num_rotations, -1), torch.stack(maps).view(num_rotations, -1)
+    maps = torch.stack(maps).view(num_rotations, -1)
+    if margin > 0:
+        row, col = (maps - 1).div(size, rounding_mode="floor"), (maps - 1).remainder(size)
+        band = (row < margin) | (row >= size - margin) | (col < margin) | (col >= size - margin)
+        maps = maps.masked_fill(band & (maps > 0), 0)
+    return torch.stack(scene).view(num_rotations, -1), maps
 
 
 def _channels_last(x: torch.Tensor) -> bool:
@@ -112,12 +119,17 @@ class QFCN(nn.Module):
         num_classes: K depth classes of the input quantisation.
         num_rotations: R rotation bins k·π/R.
         width: channel multiplier (1.0 = the reference).
+        frame_margin: pixels at each gripper frame's edge whose Q is ``-inf`` (never proposed; 0 = none,
+            the reference). The trunk's zero padding makes that band's values arbitrary, and an object
+            there would lie partly outside the workspace; untrained, the band's Q outranked every object
+            and put the greedy proposals on the image border (docs/policy.md).
     """
 
     CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
 
     def __init__(
-        self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0
+        self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0,
+        frame_margin: int = 0,
     ) -> None:
         super().__init__()
         encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
@@ -125,6 +137,9 @@ class QFCN(nn.Module):
             raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
         if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
             raise ValueError(f"width must be a positive number, got {width!r}")
+        if not isinstance(frame_margin, int) or isinstance(frame_margin, bool) or not 0 <= frame_margin < geometry.HEIGHTMAP_SIZE // 4:
+            raise ValueError(f"frame_margin must be an int in [0, {geometry.HEIGHTMAP_SIZE // 4}) pixels, got {frame_margin!r}")
+        self.frame_margin = frame_margin
         self.max_height, self.num_classes = float(max_height), num_classes
         self.num_rotations, self.width = num_rotations, float(width)
 
@@ -163,7 +178,7 @@ class QFCN(nn.Module):
             if isinstance(m, nn.Conv2d):
                 nn.init.xavier_normal_(m.weight)
 
-        scene_index, map_index = _rotation_tables(num_rotations, geometry.HEIGHTMAP_SIZE)
+        scene_index, map_index = _rotation_tables(num_rotations, geometry.HEIGHTMAP_SIZE, frame_margin)
         self.register_buffer("_scene_index", scene_index, persistent=False)
         self.register_buffer("_map_index", map_index, persistent=False)
 
@@ -333,8 +348,9 @@ def build_q_network(
     num_classes: int = 21,
     num_rotations: int = geometry.NUM_ROTATIONS,
     width: float | None = None,
+    frame_margin: int = 0,
 ) -> QFCN:
     """A :class:`QFCN` at a preset width (``Q_PRESETS``); ``width`` overrides the preset's."""
     if preset not in Q_PRESETS:
         raise ValueError(f"unknown Q network preset {preset!r}; expected one of {sorted(Q_PRESETS)}")
-    return QFCN(max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width)
+    return QFCN(max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width, frame_margin)
