@@ -136,6 +136,14 @@ def test_bad_input_is_one_clear_error(nets):
         make_planner(nets, num_candidates=0)
     with pytest.raises(ValueError, match="proposal"):
         make_planner(nets, proposal="best")
+    # too many candidates for the Q map: refused at construction, naming the argument and the limit
+    with pytest.raises(ValueError, match=r"num_candidates must be an int in \[1, 131072\] .* got 131073"):
+        make_planner(nets, num_candidates=131073)
+    # an unbatched state: the error quotes the shape the caller passed, not one with a batch dim added
+    single = batch(1)[0]
+    single["heightmap"] = torch.zeros(1, 64, 64)
+    with pytest.raises(ValueError, match=r"heightmap must have shape \(1, 128, 128\) .* got \(1, 64, 64\)$"):
+        planner(single)
 
 
 @pytest.mark.slow

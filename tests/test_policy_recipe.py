@@ -85,6 +85,10 @@ def test_train_policy_config_composes_every_group():
     assert cfg.schedule.max_wall_clock_s == 2160 and cfg.threads == 1 and cfg.env.num_objects == 3
     assert cfg.agent.num_target_candidates == 3 and cfg.schedule.pretrain_updates == 200
     assert cfg.schedule.updates_per_step == 0.5 and cfg.agent.bootstrap_cache == 4096
+    assert cfg.agent.q_frame_margin == 8 and cfg.agent.lr.q == 1e-3 and cfg.agent.lr.value == 1e-4
+    from ldm_rl.agents import build_agent
+
+    assert build_agent(cfg, float(cfg.env.max_height)).planner.q_network.frame_margin == 8
 
 
 @pytest.mark.slow

@@ -27,7 +27,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
-from ldm_rl import keys
+from ldm_rl import geometry, keys
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
 from ldm_rl.runtime import eval_mode
@@ -102,8 +102,10 @@ class LookaheadPlanner(TensorDictModuleBase):
         write_action_value: bool = True,
     ) -> None:
         super().__init__()
-        if not isinstance(num_candidates, int) or num_candidates < 1:
-            raise ValueError(f"num_candidates must be a positive int, got {num_candidates!r}")
+        actions = getattr(q_network, "num_rotations", 1) * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
+        if not isinstance(num_candidates, int) or isinstance(num_candidates, bool) or not 1 <= num_candidates <= actions:
+            raise ValueError(f"num_candidates must be an int in [1, {actions}] (the Q map's rotations x pixels), "
+                             f"got {num_candidates!r}")
         for name, mode in (("proposal", proposal), ("greedy_proposal", greedy_proposal)):
             if mode not in PROPOSAL_MODES:
                 raise ValueError(f"{name} must be one of {PROPOSAL_MODES}, got {mode!r}")
@@ -139,6 +141,11 @@ class LookaheadPlanner(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys.require_keys(tensordict, self.in_keys, type(self).__name__)
+        for key, size in ((keys.HEIGHTMAP, geometry.HEIGHTMAP_SIZE), (keys.IN_HAND, geometry.HAND_SIZE)):
+            shape, want = tuple(tensordict.get(key).shape), (*tensordict.batch_size, 1, size, size)
+            if shape != want:  # checked here, on the caller's shapes (decide sees them with a batch dim added)
+                raise ValueError(f"{key} must have shape {want} (batch size {tuple(tensordict.batch_size)} + "
+                                 f"[1, {size}, {size}] metres), got {shape}")
         unbatched = tensordict.batch_dims == 0
         td = tensordict.unsqueeze(0) if unbatched else tensordict
         batch = td.batch_size
