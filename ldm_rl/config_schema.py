@@ -31,6 +31,8 @@ from typing import Any, Callable, List, Mapping, Optional
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from ldm_rl.extras import MissingExtraError, require_logger_backend
+
 __all__ = [
     "ConfigError",
     "Rule",
@@ -139,29 +141,6 @@ def group(cls: type) -> Any:
 
 
 # ------------------------------------------------------------------------- light pre-flight facts
-
-_LOGGER_MODULES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
-
-
-class MissingExtraError(ImportError):
-    """An optional backend's package is not installed; the one-line message names the extra to install."""
-
-
-def require_logger_backend(backend: str) -> None:
-    """Raise :class:`MissingExtraError` (one line naming the extra) if ``backend``'s package is missing."""
-    import importlib.util
-
-    module = _LOGGER_MODULES.get(backend)
-    if module is None:
-        return
-    try:
-        found = importlib.util.find_spec(module) is not None
-    except (ImportError, ValueError):  # a broken install, or a module set to None in sys.modules
-        found = False
-    if not found:
-        raise MissingExtraError(f"logger={backend} needs the {module!r} package, which is not installed: "
-                                f"pip install 'ldm_rl[{backend}]' (from a clone: pip install -e '.[{backend}]')")
-
 
 # objects each task accepts (the envs raise the same for other counts: tests/test_config.py checks both agree)
 OBJECT_COUNTS = {"ldm_rl/HouseBuilding-v0": (3, 3), "ldm_rl/BottleArrangement-v0": (1, 6)}

@@ -15,7 +15,7 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 import torch
 
-from ldm_rl.config_schema import MissingExtraError, require_logger_backend  # light: the pre-flight checks them too
+from ldm_rl.extras import MissingExtraError, require_logger_backend  # the pre-flight checks them too
 
 __all__ = [
     "seed_everything",

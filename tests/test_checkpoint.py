@@ -218,6 +218,11 @@ def _same(a, b):
 class _FakeStop:
     requested, signal_name = True, "SIGINT"
 
+    def saving(self):
+        import contextlib
+
+        return contextlib.nullcontext()
+
 
 @pytest.mark.usefixtures("one_torch_thread")
 def test_stop_then_resume_equals_an_uninterrupted_run(tmp_path):
