@@ -111,6 +111,7 @@ def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0)
 
     from ldm_rl.agents import build_agent
     from ldm_rl.envs import make_env_from_config
+    from ldm_rl.models.compile import compile_inference
     from ldm_rl.runtime import seed_everything
 
     root = pathlib.Path(__file__).resolve().parents[1]
@@ -122,6 +123,8 @@ def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0)
     seed_everything(seed)
     max_height = float(cfg.env.max_height)
     agent = build_agent(cfg, max_height)
+    if cfg.compile:
+        compile_inference(agent)
     replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=int(cfg.model.num_depth_classes),
                          return_gamma=float(cfg.agent.gamma) if cfg.agent.return_lower_bound else None,
                          batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),

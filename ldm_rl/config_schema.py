@@ -164,6 +164,10 @@ def machine_problems(cfg: DictConfig, *, checkpoint_kind: str | None = None) -> 
     problem = _device_problem(str(device)) if device is not None else None
     if problem:
         found.append(problem)
+    if OmegaConf.select(cfg, "compile") is True:
+        problem = _compile_problem(str(device))
+        if problem:
+            found.append(problem)
     checkpoint = OmegaConf.select(cfg, "checkpoint")
     if checkpoint_kind is not None and checkpoint is not None:
         try:
@@ -174,6 +178,21 @@ def machine_problems(cfg: DictConfig, *, checkpoint_kind: str | None = None) -> 
             found.append(f"checkpoint={checkpoint} holds a {kind or 'kindless'} checkpoint: this recipe reads an "
                          f"{checkpoint_kind}'s (a checkpoint.pt of recipes/train_policy.py)")
     return found
+
+
+def _compile_problem(device: str) -> str | None:
+    """Why ``compile=true`` cannot run on ``device`` here, found without importing torch (None: it can)."""
+    import os
+    import shutil
+
+    if device == "mps" or device.startswith("xpu"):
+        return f"compile=true is not supported with device={device} (inductor here: cpu and cuda); use compile=false"
+    if device in ("cpu", "auto"):
+        cxx = os.environ.get("CXX", "g++")
+        if shutil.which(cxx) is None:
+            return (f"compile=true needs a C++ compiler for inductor on the CPU and {cxx} is not on PATH "
+                    "(install g++ or set CXX); use compile=false")
+    return None
 
 
 def _device_problem(device: str) -> str | None:
@@ -559,6 +578,7 @@ class TrainPolicyConfig(RunSettings):
     logger: LoggerConfig = group(LoggerConfig)
     collector: CollectorConfig = group(CollectorConfig)
     resume: bool = False
+    compile: bool = spec(False, doc="torch.compile the inference passes (decisions, lookahead targets)")
 
     check = Config.check
 

@@ -60,6 +60,7 @@ def evaluate(cfg: DictConfig) -> dict:
 
         require_matplotlib()  # before any episode is played
     set_threads(cfg.threads)
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines (a buffer's storage initialised) are noise here
     seed_everything(int(cfg.seed))
     save_resolved_config(cfg, hydra_output_dir())
     path = hydra.utils.to_absolute_path(str(cfg.checkpoint))

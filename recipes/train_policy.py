@@ -112,12 +112,14 @@ def train(cfg: DictConfig) -> dict:
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.collectors import EpisodeAssembler, TaskEnvFactory, collected_steps, make_collector, shutdown_collector
     from ldm_rl.evaluation import evaluate_policy
+    from ldm_rl.models.compile import compile_inference
     from ldm_rl.progress import progress_bar
     from ldm_rl.runtime import atomic_write_text, close_logger, hydra_output_dir, make_logger, resolve_device, \
         save_resolved_config, seed_everything, set_threads
 
     validate_config(cfg, TrainPolicyConfig)  # the command line was checked before Hydra; this covers sweep jobs
     set_threads(cfg.threads)
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines (a buffer's storage initialised) are noise here
     seed_everything(int(cfg.seed))
     device = resolve_device(cfg.device)
     out_dir = hydra_output_dir()
@@ -132,6 +134,8 @@ def train(cfg: DictConfig) -> dict:
     start = time.perf_counter()
     max_height = float(cfg.env.max_height)
     agent = build_agent(cfg, max_height).to(device)
+    if cfg.compile:  # inference passes (decisions, lookahead targets) through inductor, compiled on first use
+        compile_inference(agent)
     replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=int(cfg.model.num_depth_classes),
                          return_gamma=float(cfg.agent.gamma) if cfg.agent.return_lower_bound else None,
                          batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),

@@ -3,6 +3,7 @@
 work and without an output folder."""
 
 import importlib.util
+import os
 import re
 import subprocess
 import sys
@@ -144,8 +145,8 @@ def test_user_config_dir_extends_groups(tmp_path):
     assert cfg.logger.exp_name == "mine"
 
 
-def run_recipe(recipe, *args, cwd):
-    return subprocess.run([sys.executable, str(recipe), *args], cwd=cwd, capture_output=True, text=True, timeout=300)
+def run_recipe(recipe, *args, cwd, env=None):
+    return subprocess.run([sys.executable, str(recipe), *args], cwd=cwd, capture_output=True, text=True, timeout=300, env=env)
 
 
 def test_every_documented_recipe_is_collected_here():
@@ -210,6 +211,7 @@ BAD_COMMANDS = [
     pytest.param("train_policy.py", ["device=cuda"], "error: device=cuda: this machine has no NVIDIA driver",
                  marks=pytest.mark.skipif(any(Path(p).exists() for p in ("/dev/nvidiactl", "/proc/driver/nvidia/version",
                                                                            "/dev/kfd")), reason="a GPU driver is here")),
+    ("train_policy.py", ["compile=true", "device=mps"], "compile=true is not supported with device=mps (inductor here: cpu and cuda); use compile=false"),
     pytest.param("train_dynamics.py", ["logger=mlflow"], "error: logger=mlflow needs the 'mlflow' package, which is not installed",
                  marks=pytest.mark.skipif(importlib.util.find_spec("mlflow") is not None, reason="mlflow is installed")),
 ]
@@ -223,6 +225,14 @@ def test_a_bad_config_stops_in_one_line_without_an_output_folder(recipe, args, e
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], done.stderr
     assert list(tmp_path.iterdir()) == [], "a failed command must not leave files behind"
+
+
+def test_compile_without_a_cxx_compiler_stops_in_one_line(tmp_path):
+    done = run_recipe(ROOT / "recipes" / "train_policy.py", "compile=true", cwd=tmp_path,
+                      env={**os.environ, "CXX": "no-such-compiler-here"})
+    assert done.returncode == 2 and list(tmp_path.iterdir()) == [], done.stderr
+    assert done.stderr.strip() == ("error: compile=true needs a C++ compiler for inductor on the CPU and no-such-compiler-here "
+                                   "is not on PATH (install g++ or set CXX); use compile=false")
 
 
 def test_evaluate_refuses_a_dynamics_checkpoint_in_one_line(tmp_path):

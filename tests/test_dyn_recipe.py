@@ -101,6 +101,8 @@ def test_train_dynamics_recipe_smoke(tmp_path):
     assert "train dynamics: 4/4 it (100%)" in logged and "done: SR" in logged
     summary = json.loads((run_dir / "final_metrics.json").read_text())
     assert summary["model"] == "LDM(64)" and summary["task"] == "block_stacking" and 0 <= summary["sr"] <= 1
+    near_floor = summary["sr"] - summary["floor_sr"] < 0.05  # the last line says what an SR near the floor means
+    assert ("SR is within 5 points of its floor after 4 iterations: expected for a short run" in logged) == near_floor
     from ldm_rl.world_model.factory import load_dynamics_checkpoint
 
     model, checkpoint = load_dynamics_checkpoint(run_dir, expect={"preset": "lite", "task": "ldm_rl/BlockStacking-v0"})

@@ -54,6 +54,7 @@ from torch import nn
 
 from ldm_rl import geometry
 from ldm_rl.models.blocks import LEAKY_SLOPE, BasicBlock, check_height_images, encode_heights, scaled_channels
+from ldm_rl.models.compile import CompiledInference
 
 __all__ = ["QFCN", "Q_PRESETS", "build_q_network"]
 
@@ -111,7 +112,7 @@ def _channels_last(x: torch.Tensor) -> bool:
     return x.dim() >= 4 and x.shape[-3] > 1 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
 
 
-class QFCN(nn.Module):
+class QFCN(CompiledInference, nn.Module):
     """Pick/place Q maps over all pixels and R rotation bins. See the module docstring.
 
     Args:
@@ -208,7 +209,11 @@ class QFCN(nn.Module):
     # network pieces
     # ------------------------------------------------------------------------------------------
     def _trunk(self, x: torch.Tensor) -> torch.Tensor:
-        """[M, 1, H, W] encoded scenes -> [M, C, H, W] features."""
+        """[M, 1, H, W] encoded scenes -> [M, C, H, W] features (compiled for inference where switched on:
+        :mod:`ldm_rl.models.compile`; on CPU M is always one chunk of whole samples)."""
+        return self._inference(self._trunk_eager, x, dynamic_batch=x.device.type != "cpu")
+
+    def _trunk_eager(self, x: torch.Tensor) -> torch.Tensor:
         inp = self.conv_1(x)
         if x.device.type == "cpu":  # see the module docstring (channels_last)
             inp = inp.contiguous(memory_format=torch.channels_last)  # the later layers keep the format

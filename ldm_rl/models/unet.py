@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from ldm_rl.models.blocks import LEAKY_SLOPE, CatConv, UpProjection, bottleneck_stage, conv_bn_act
+from ldm_rl.models.compile import CompiledInference
 
 __all__ = ["DepthUNet", "REFERENCE_BASE_CHANNELS", "STAGE_BLOCKS"]
 
@@ -19,7 +20,7 @@ REFERENCE_BASE_CHANNELS = 32
 STAGE_BLOCKS = (1, 2, 3, 1)
 
 
-class DepthUNet(nn.Module):
+class DepthUNet(CompiledInference, nn.Module):
     """[B, in_channels, S, S] float -> [B, num_classes, S, S] logits (S divisible by 16).
 
     Args:
@@ -56,6 +57,9 @@ class DepthUNet(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self._inference(self._forward, x, dynamic_batch=True)
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
         skips = [self.stem(x)]
         for stage in self.stages:
             skips.append(stage(skips[-1]))
