@@ -33,6 +33,16 @@ __all__ = ["PlotDependencyError", "require_matplotlib", "plot_prediction_grid", 
 
 PLOT_EXTRA = "pip install 'ldm_rl[plot]'"
 HEIGHT_CMAP, ERROR_CMAP, Q_CMAP = "viridis", "Reds", "magma"
+# heights are drawn on a square-root scale: a single 2.5 cm block on a 0.25 m scale sits at 0.32 of the colour
+# map (blue-green), not at 0.1 (the dark purple of the empty table)
+HEIGHT_GAMMA = 0.5
+
+
+def _height_norm(max_height: float):
+    """The colour scale of every heightmap: 0 → ``max_height`` metres on a square-root scale."""
+    from matplotlib.colors import PowerNorm
+
+    return PowerNorm(HEIGHT_GAMMA, vmin=0.0, vmax=max_height)
 PICK_COLOUR, PLACE_COLOUR, CHOSEN_COLOUR = "white", "black", "red"
 RIGHT_COLOUR, WRONG_COLOUR = "tab:green", "tab:red"
 PIXELS_NOTE = "128 × 128 px heightmaps, 3.125 mm per px (rows ↔ x, columns ↔ y)"
@@ -190,7 +200,7 @@ def plot_prediction_grid(before, predicted, true, actions, path: str | Path, *, 
     columns = ("before", "predicted next", "true next", "|predicted − true|")
     for i in range(n):
         for j, image in enumerate((b[i], p[i], t[i])):
-            im_h = axes[i, j].imshow(image, cmap=HEIGHT_CMAP, vmin=0.0, vmax=max_height, interpolation="nearest")
+            im_h = axes[i, j].imshow(image, cmap=HEIGHT_CMAP, norm=_height_norm(max_height), interpolation="nearest")
         im_e = axes[i, 3].imshow(error_mm[i], cmap=ERROR_CMAP, norm=PowerNorm(0.5, vmin=0.0, vmax=vmax_err),
                                  interpolation="nearest")
         pick = None if picks is None else bool(picks[i])
@@ -276,7 +286,7 @@ def plot_expert_strip(frames, actions, path: str | Path, *, max_height: float, n
         if k > t:
             ax.axis("off")
             continue
-        im = ax.imshow(f[k], cmap=HEIGHT_CMAP, vmin=0.0, vmax=max_height, interpolation="nearest")
+        im = ax.imshow(f[k], cmap=HEIGHT_CMAP, norm=_height_norm(max_height), interpolation="nearest")
         _no_ticks(ax)
         if k < t:
             kind = "pick" if picks[k] else "place"
@@ -387,7 +397,7 @@ def plot_decision(heightmap, q_map, candidates, values, chosen, path: str | Path
     kind = "" if is_pick is None else ("pick" if is_pick else "place")
     for ax, name, image in maps:
         if name == "heightmap":
-            im = ax.imshow(image, cmap=HEIGHT_CMAP, vmin=0.0, vmax=max_height or max(float(image.max()), 1e-3),
+            im = ax.imshow(image, cmap=HEIGHT_CMAP, norm=_height_norm(max_height or max(float(image.max()), 1e-3)),
                            interpolation="nearest")
             _heights_colourbar(fig, im, ax, shrink=0.8)
         else:
@@ -451,7 +461,7 @@ def plot_episodes_gif(steps: Sequence[Mapping[str, Any]], path: str | Path, *, m
     fig = _figure(3.2 * len(names) + 0.9, 3.9)
     axes = list(np.atleast_1d(fig.subplots(1, len(names))))
     blank = np.zeros_like(_array(steps[0]["heightmap"], "heightmap", 2))
-    images = [ax.imshow(blank, cmap=HEIGHT_CMAP, vmin=0.0, vmax=max_height, interpolation="nearest") for ax in axes]
+    images = [ax.imshow(blank, cmap=HEIGHT_CMAP, norm=_height_norm(max_height), interpolation="nearest") for ax in axes]
     for ax in axes:
         _no_ticks(ax)
     _heights_colourbar(fig, images[0], axes, shrink=0.8)

@@ -57,6 +57,18 @@ def test_prediction_grid_names_columns_rows_and_puts_error_on_its_own_scale(tmp_
     assert fig.axes[3].images[0].get_array()[0, 0] == pytest.approx(3.0, abs=1e-3)
 
 
+def test_a_single_block_stands_out_from_the_table_on_every_task_scale():
+    """One 2.5 cm block on the tallest scale (block stacking, 0.25 m): its colour is far from the empty table's
+    (a linear scale put it at 0.1 of viridis, dark blue on dark purple)."""
+    import numpy as np
+    from matplotlib import colormaps
+
+    norm = plots._height_norm(0.25)
+    table, block = (np.array(colormaps[plots.HEIGHT_CMAP](float(norm(h)))[:3]) for h in (0.0, 0.025))
+    assert float(norm(0.025)) > 0.3 and np.abs(block - table).sum() > 0.5
+    assert float(norm(0.25)) == pytest.approx(1.0) and float(norm(0.0)) == pytest.approx(0.0)
+
+
 def test_prediction_grid_rejects_mismatched_inputs(tmp_path):
     scenes = block_scenes(2)
     with pytest.raises(ValueError, match=r"before, predicted and true must share one \[N>=1, H, W\] shape"):
