@@ -9,6 +9,9 @@ from torchrl.objectives import HardUpdate
 from ldm_rl.objectives import LookaheadLoss
 from policy_helpers import tiny_networks, transitions
 
+# these tests build the loss alone; the agents pair it with TargetSync (tests/test_target_sync.py)
+pytestmark = pytest.mark.filterwarnings("ignore:No target network updater has been associated:UserWarning")
+
 
 def make_loss(seed=0, **kwargs):
     q, dynamics, value = tiny_networks(seed)
