@@ -44,6 +44,8 @@ def test_the_compiled_function_is_never_pickled_or_copied():
     assert "_compiled_fn" not in net.__dict__ and not net._compile_inference
     with pytest.raises(ValueError, match="enabled must be a bool"):
         compile_inference(net, "yes")
+    with pytest.raises(ValueError, match="module must be a torch.nn.Module, got dict"):
+        compile_inference({"q": net})
 
 
 @pytest.mark.slow

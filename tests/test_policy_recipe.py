@@ -40,6 +40,7 @@ def test_smoke_run_writes_curve_checkpoint_and_metrics(smoke_run):
     assert curve[0].startswith("updates,episodes,env_steps,wall_s,success_rate") and len(curve) >= 3
     assert (out / "learning_curve.png").stat().st_size > 10_000
     assert "done: greedy success" in proc.stdout
+    assert "Initialized LazyTensorStorage" not in proc.stdout + proc.stderr  # torchrl's INFO lines are quieted
     # checkpoint selection: the earliest best in-training evaluation, re-scored on held-out scenes
     rows = [dict(zip(curve[0].split(","), line.split(","))) for line in curve[1:-1]]  # the last row is the final one
     rates = [float(row["success_rate"]) for row in rows]

@@ -41,8 +41,7 @@ class CompiledInference:
         return compiled(x)
 
     def __getstate__(self):
-        state = super().__getstate__() if hasattr(super(), "__getstate__") else self.__dict__.copy()
-        state = dict(state)
+        state = self.__dict__.copy()  # what nn.Module pickles and deep-copies, less the compiled function
         state.pop("_compiled_fn", None)
         return state
 
@@ -50,6 +49,8 @@ class CompiledInference:
 def compile_inference(module: nn.Module, enabled: bool = True) -> nn.Module:
     """Switch compiled inference on (or off) for every :class:`CompiledInference` network in ``module``;
     returns ``module``. Compilation happens lazily, on each network's first inference call."""
+    if not isinstance(module, nn.Module):
+        raise ValueError(f"module must be a torch.nn.Module, got {type(module).__name__}")
     if not isinstance(enabled, bool):
         raise ValueError(f"enabled must be a bool, got {enabled!r}")
     for m in module.modules():
