@@ -162,7 +162,7 @@ def train(cfg: DictConfig) -> dict:
         curve.append(row)
         if s.keep_best and row["success_rate"] > best["success_rate"]:  # the earliest of equal scores stays
             best.update(row)
-            save_checkpoint(out_dir / BEST_NAME, {"agent": agent.state_dict(), "evaluation": row}, meta=meta)
+            save_checkpoint(out_dir / BEST_NAME, {"agent": agent.policy_state_dict(), "evaluation": row}, meta=meta)
         write_curve(curve, out_dir, f"{agent.name} agent, {task}, seed {cfg.seed}")
         if logger is not None:
             logger.log_metrics({f"eval/{key}": row[key] for key in ("success_rate", "ci_low", "ci_high", "mean_length")},
@@ -282,7 +282,7 @@ def train(cfg: DictConfig) -> dict:
                "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}
     if s.keep_best and (out_dir / BEST_NAME).exists():
         # the selected weights on scenes the selection never saw (evaluate.py's seed), not on the curve's
-        agent.load_state_dict(load_checkpoint(out_dir / BEST_NAME, map_location=device).state["agent"])
+        agent.load_policy_state_dict(load_checkpoint(out_dir / BEST_NAME, map_location=device).state["agent"])
         result = evaluate_policy(eval_env, agent.policy, int(s.final_eval_episodes), seed=int(cfg.seed) + 2_000_000,
                                  progress=bool(s.progress))
         summary["best"] = {"selected_at": {k: best[k] for k in ("updates", "episodes", "env_steps", "wall_s", "success_rate")},

@@ -6,6 +6,7 @@ import pytest
 import torch
 from torchrl.objectives import HardUpdate
 
+from ldm_rl.agents.base import is_target_entry
 from ldm_rl.objectives import LookaheadLoss, TargetSync
 from ldm_rl.runtime import eval_mode
 from policy_helpers import tiny_networks, transitions
@@ -135,3 +136,27 @@ def test_the_ldm_agent_caches_bootstraps_until_a_copy_or_a_checkpoint():
     assert len(agent.loss.bootstrap_cache) > 0
     agent.update(data.clone())  # ends with a target copy
     assert len(agent.loss.bootstrap_cache) == 0
+
+
+@pytest.mark.parametrize("name", AGENT_NAMES)
+def test_policy_state_holds_no_target_copies_and_loads_with_synced_targets(name):
+    trained = make_agent(name)
+    for seed in range(2):
+        trained.pretrain_update(batch(4, seed))
+    policy_state = trained.policy_state_dict()
+    assert not any(is_target_entry(key) for key in policy_state)
+    assert len(policy_state) < len(trained.state_dict())
+    fresh = make_agent(name)
+    fresh.load_policy_state_dict(policy_state)
+    for key, value in trained.policy_state_dict().items():  # the online networks, buffers included
+        assert torch.equal(fresh.state_dict()[key], value), key
+    _assert_targets_equal(fresh.loss)  # the targets re-created from the loaded online networks
+
+
+def test_full_state_dicts_still_load_and_a_foreign_key_is_refused():
+    trained, fresh = make_agent("ldm"), make_agent("ldm")
+    trained.pretrain_update(batch(4, 0))
+    fresh.load_policy_state_dict(trained.state_dict())  # checkpoints written before policy_state_dict existed
+    assert all(torch.equal(fresh.state_dict()[k], v) for k, v in trained.state_dict().items())
+    with pytest.raises(RuntimeError, match="unexpected"):
+        fresh.load_policy_state_dict({**trained.policy_state_dict(), "planner.bogus": torch.zeros(1)})

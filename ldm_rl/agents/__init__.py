@@ -196,5 +196,5 @@ def load_agent(path, *, preset: str | None = None, device="cpu"):
     checkpoint = load_checkpoint(path, expect=expect, map_location=device)
     cfg = checkpoint.meta["config"]
     agent = build_agent(cfg, float(cfg["env"]["max_height"])).to(device)
-    agent.load_state_dict(checkpoint.state["agent"])
+    agent.load_policy_state_dict(checkpoint.state["agent"])  # best_policy.pt holds no target copies
     return agent.eval(), cfg

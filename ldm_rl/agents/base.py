@@ -13,7 +13,12 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-__all__ = ["Agent"]
+__all__ = ["Agent", "is_target_entry"]
+
+
+def is_target_entry(key: str) -> bool:
+    """Whether a ``state_dict`` key belongs to a target network's copy (a loss's ``target_<net>_params``)."""
+    return any(part.startswith("target_") and part.endswith("_params") for part in key.split("."))
 
 
 class Agent(nn.Module):
@@ -57,6 +62,24 @@ class Agent(nn.Module):
         cache = getattr(getattr(self, "loss", None), "bootstrap_cache", None)
         if cache is not None:
             cache.clear()
+
+    def policy_state_dict(self) -> dict[str, torch.Tensor]:
+        """``state_dict`` less the target networks' copies: what acting needs (``best_policy.pt`` holds it).
+        The targets only shape the training targets; :meth:`load_policy_state_dict` re-creates them."""
+        return {key: value for key, value in self.state_dict().items() if not is_target_entry(key)}
+
+    def load_policy_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Load a :meth:`state_dict` or a :meth:`policy_state_dict`; without target copies the targets are
+        synced from the loaded online networks; cached bootstraps are dropped. Any other missing or unexpected
+        key is an error."""
+        result = self.load_state_dict(state, strict=False)
+        missing = [key for key in result.missing_keys if not is_target_entry(key)]
+        if missing or result.unexpected_keys:
+            raise RuntimeError(f"{self.name} agent state does not fit: {len(missing)} missing keys (first "
+                               f"{missing[:1]}), {len(result.unexpected_keys)} unexpected (first {result.unexpected_keys[:1]})")
+        if result.missing_keys:
+            self.sync_targets()
+        self.drop_caches()
 
     def learning_rates(self) -> dict[str, float]:
         return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}
