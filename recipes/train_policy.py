@@ -41,7 +41,27 @@ TRANSITION_KEYS = ("heightmap", "in_hand", "holding", "action",
                    ("next", "done"), ("next", "terminated"), ("next", "truncated"))
 log = logging.getLogger("train_policy")
 BEST_NAME = "best_policy.pt"
+PACKING_TASK = "ldm_rl/BinPacking-v0"
 CURVE_FIELDS = ("updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length")
+
+
+def packing_report(eval_env, returns: list[float], *, seed: int, progress: bool) -> dict:
+    """Bin packing's report for the final evaluation's ``returns``, with the scripted expert's on the same scenes
+    (the same evaluation seed): packed fraction, mean pile top (m), mean return under ours and the authors' reward."""
+    from ldm_rl.envs import expert_policy
+    from ldm_rl.envs.tasks.bin_packing import packing_scores
+    from ldm_rl.evaluation import evaluate_policy
+
+    expert_returns: list[float] = []
+    evaluate_policy(eval_env, expert_policy(eval_env), len(returns), seed=seed, progress=progress,
+                    on_episode=lambda i, episode: expert_returns.append(float(episode["next", "reward"].sum())))
+    return {**packing_scores(returns), "expert": packing_scores(expert_returns)}
+
+
+def _packing_line(scores: dict) -> str:
+    top = "-" if scores["mean_pile_top"] is None else f"{100 * scores['mean_pile_top']:.1f} cm"
+    return (f"packed {100 * scores['packed']:.0f}%, mean pile top {top}, mean return {scores['mean_return']:.3f} "
+            f"(the authors' reward: {scores['mean_return_authors']:.2f})")
 
 
 def expert_episodes(cfg: DictConfig) -> list:
@@ -155,8 +175,9 @@ def train(cfg: DictConfig) -> dict:
 
     best = {"success_rate": -1.0}  # the best in-training evaluation so far (schedule.keep_best)
 
-    def evaluate(episodes: int) -> dict:
-        result = evaluate_policy(eval_env, agent.policy, episodes, seed=int(cfg.seed) + 1_000_000, progress=bool(s.progress))
+    def evaluate(episodes: int, on_episode=None) -> dict:
+        result = evaluate_policy(eval_env, agent.policy, episodes, seed=int(cfg.seed) + 1_000_000, progress=bool(s.progress),
+                                 on_episode=on_episode)
         scores = {("eval_episodes" if key == "episodes" else key): value for key, value in result.as_dict().items()}
         row = {"updates": agent.updates, **counters, "wall_s": time.perf_counter() - start, **scores}
         curve.append(row)
@@ -276,10 +297,15 @@ def train(cfg: DictConfig) -> dict:
                 break
     bar.close()
     shutdown_collector(collector)
-    final = evaluate(int(s.final_eval_episodes))
+    final_returns: list[float] = []  # per episode: bin packing's report reads the pile top from the reward
+    final = evaluate(int(s.final_eval_episodes), lambda i, episode: final_returns.append(float(episode["next", "reward"].sum())))
     summary = {"agent": agent.name, "task": cfg.env.id, "num_objects": int(cfg.env.num_objects), "seed": int(cfg.seed),
                "preset": str(cfg.agent.preset or cfg.model.preset), **{k: final[k] for k in CURVE_FIELDS},
                "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}
+    if cfg.env.id == PACKING_TASK:
+        summary["packing"] = packing_report(eval_env, final_returns, seed=int(cfg.seed) + 1_000_000, progress=bool(s.progress))
+        log.info(f"bin packing, final weights: {_packing_line(summary['packing'])}; the scripted expert on the same "
+                 f"scenes: {_packing_line(summary['packing']['expert'])}")
     if s.keep_best and (out_dir / BEST_NAME).exists():
         # the selected weights on scenes the selection never saw (evaluate.py's seed), not on the curve's
         agent.load_policy_state_dict(load_checkpoint(out_dir / BEST_NAME, map_location=device).state["agent"])

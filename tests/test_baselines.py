@@ -424,3 +424,7 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     final = json.loads((tmp_path / "final_metrics.json").read_text())
     assert final["task"] == "ldm_rl/BinPacking-v0" and final["num_objects"] == 8
     assert 0.0 <= final["success_rate"] <= 1.0 and final["episodes_final_eval"] == 1 and final["updates"] > 0
+    packing = final["packing"]  # the agent's and the scripted expert's packing report on the same scene
+    assert packing["episodes"] == packing["expert"]["episodes"] == 1
+    assert packing["packed"] == final["success_rate"] and 0.0 <= packing["expert"]["packed"] <= 1.0
+    assert "the scripted expert on the same scenes" in proc.stdout + proc.stderr

@@ -184,6 +184,22 @@ def test_bin_packing_pile_reward_is_inversely_proportional_to_the_pile_top():
         assert r * top == pytest.approx(MIN_PILE_TOP)  # reward · top is constant
 
 
+def test_packing_scores_read_the_pile_top_back_from_the_reward():
+    from ldm_rl.envs.tasks.bin_packing import packing_scores, pile_reward, pile_top_from_reward
+
+    for top in (0.03, 0.05, 0.094, 0.121, 0.3):
+        assert pile_top_from_reward(pile_reward(top)) == pytest.approx(top)
+    scores = packing_scores([pile_reward(0.08), 0.0, pile_reward(0.12), 0.0])
+    assert scores["episodes"] == 4 and scores["packed"] == 0.5
+    assert scores["mean_pile_top"] == pytest.approx(0.10)
+    assert scores["mean_return"] == pytest.approx((0.375 + 0.25) / 4)
+    assert scores["mean_return_authors"] == pytest.approx((2.0 - 2.0) / 4, abs=1e-9)  # 100·(0.1 − top): +2, −2
+    assert packing_scores([0.0, 0.0])["mean_pile_top"] is None
+    for bad in ([], [1.5]):
+        with pytest.raises(ValueError):
+            packing_scores(bad)
+
+
 def test_bin_packing_expert_successes_earn_a_positive_reward_that_falls_with_the_pile():
     from ldm_rl.envs.episodes import run_expert_episode
     from ldm_rl.envs.tasks.bin_packing import pile_reward

@@ -19,7 +19,7 @@ import numpy as np
 from ldm_rl.envs.base import PickPlaceEnv, SpawnError, PrimitiveTarget
 from ldm_rl.envs.objects import BIN_BLOCKS, ContainerFrame, ContainerSpec, add_container, spawn
 
-__all__ = ["BinPackingEnv", "BIN", "MIN_PILE_TOP", "pile_reward"]
+__all__ = ["BinPackingEnv", "BIN", "MIN_PILE_TOP", "pile_reward", "pile_top_from_reward", "packing_scores"]
 
 BIN = ContainerSpec(inner_x=0.18, inner_y=0.14, height=0.1)
 # The lowest top a successful pile can have (0.03 m): a block whose centre is inside the bin rests on
@@ -40,6 +40,32 @@ def pile_reward(pile_top: float) -> float:
     Always above the 0 of a failure or a timeout.
     """
     return MIN_PILE_TOP / max(float(pile_top), MIN_PILE_TOP)
+
+
+def pile_top_from_reward(reward: float) -> float:
+    """The pile top (m) of a successful pack from its reward (the inverse of :func:`pile_reward`)."""
+    if not 0 < reward <= 1:
+        raise ValueError(f"reward must be a successful pack's, in (0, 1], got {reward!r}")
+    return MIN_PILE_TOP / float(reward)
+
+
+def packing_scores(returns: list[float]) -> dict:
+    """Episode returns (our reward: a success's ``pile_reward``, else 0) -> the bin-packing report.
+
+    ``packed``: fraction of episodes with all blocks in the bin; ``mean_pile_top`` (m) over the packed ones
+    (None when none); ``mean_return`` under our reward and ``mean_return_authors`` under the authors'
+    terminal reward ``100·(0.1 m − pile top)`` (0 for an episode that never packed; the paper plots it).
+    """
+    if not returns:
+        raise ValueError("returns must hold at least one episode's return")
+    tops = [pile_top_from_reward(r) for r in returns if r > 0]
+    return {
+        "episodes": len(returns),
+        "packed": len(tops) / len(returns),
+        "mean_pile_top": sum(tops) / len(tops) if tops else None,
+        "mean_return": sum(returns) / len(returns),
+        "mean_return_authors": sum(100 * (0.1 - top) for top in tops) / len(returns),
+    }
 
 
 class BinPackingEnv(PickPlaceEnv):
