@@ -45,6 +45,8 @@ __all__ = [
     "angle_to_bin",
     "circular_bin_distance",
     "action_to_pose",
+    "flat_to_action",
+    "action_to_flat",
     "crop",
     "paste",
     "center_crop",
@@ -181,6 +183,18 @@ def circular_bin_distance(a: Tensor, b: Tensor, num_rotations: int) -> Tensor:
     r = _check_num_rotations(num_rotations)
     d = (torch.as_tensor(a) - torch.as_tensor(b)).remainder(r)
     return torch.minimum(d, r - d)
+
+
+def flat_to_action(index: Tensor, height: int, width: int) -> Tensor:
+    """Flat indices ``rot·H·W + row·W + col`` ``[*B]`` (the order of a ``[B, R, H, W]`` map flattened)
+    -> actions ``[*B, 3]`` int64 (row, col, rot)."""
+    rot, rem = index.div(height * width, rounding_mode="floor"), index.remainder(height * width)
+    return torch.stack((rem.div(width, rounding_mode="floor"), rem.remainder(width), rot), dim=-1)
+
+
+def action_to_flat(action: Tensor, height: int, width: int) -> Tensor:
+    """Actions ``[*B, 3]`` int64 (row, col, rot) -> flat indices ``rot·H·W + row·W + col`` ``[*B]``."""
+    return (action[..., 2] * height + action[..., 0]) * width + action[..., 1]
 
 
 def action_to_pose(action: Tensor, num_rotations: int, image_size: Sequence[int] | None = None):

@@ -12,6 +12,7 @@ key                     shape / dtype                                   meaning
 ``reward``              ``[*B, 1]`` float32                             (under ``"next"``)
 ``action_value``        ``[*B, R, 128, 128]`` float32                   Q map, current primitive
 ``state_value``         ``[*B, 1]`` float32                             V(s)
+``chosen_action_value`` ``[*B, 1]`` float32                             Q(s, a) of the action taken
 ``candidate_actions``   ``[*B, N, 3]`` int64                            the planner's N proposals
 ``candidate_values``    ``[*B, N]`` float32                             V(f(s, a)) of each
 ``next_logits``         ``[*B, K, S, S]`` float32                       LDM frame logits
@@ -31,7 +32,7 @@ from typing import Iterable
 
 __all__ = [
     "HEIGHTMAP", "IN_HAND", "HOLDING", "ACTION", "REWARD", "DONE", "TERMINATED", "TRUNCATED", "NEXT",
-    "ACTION_VALUE", "STATE_VALUE", "CANDIDATE_ACTIONS", "CANDIDATE_VALUES", "NEXT_LOGITS",
+    "ACTION_VALUE", "STATE_VALUE", "CHOSEN_ACTION_VALUE", "CANDIDATE_ACTIONS", "CANDIDATE_VALUES", "NEXT_LOGITS",
     "PRED_HEIGHTMAP", "PRED_IN_HAND", "PRED_HOLDING", "STATE_KEYS", "PRED_KEYS", "FORESIGHT_KEYS", "next_key",
     "require_keys",
 ]
@@ -39,6 +40,7 @@ __all__ = [
 HEIGHTMAP, IN_HAND, HOLDING, ACTION = "heightmap", "in_hand", "holding", "action"
 REWARD, DONE, TERMINATED, TRUNCATED, NEXT = "reward", "done", "terminated", "truncated", "next"
 ACTION_VALUE, STATE_VALUE = "action_value", "state_value"
+CHOSEN_ACTION_VALUE = "chosen_action_value"  # TorchRL's QValueActor key
 CANDIDATE_ACTIONS, CANDIDATE_VALUES, NEXT_LOGITS = "candidate_actions", "candidate_values", "next_logits"
 PRED_HEIGHTMAP, PRED_IN_HAND, PRED_HOLDING = "pred_heightmap", "pred_in_hand", "pred_holding"
 STATE_KEYS = (HEIGHTMAP, IN_HAND, HOLDING)

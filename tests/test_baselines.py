@@ -16,10 +16,10 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from ldm_rl.agents import build_agent
-from ldm_rl.agents.fc_dqn import QMapPolicy
+from ldm_rl.planning.q_map import QMapPolicy
 from ldm_rl.config_schema import ConfigError, TrainPolicyConfig, validate_config
 from ldm_rl.models.q_fcn import QFCN
-from ldm_rl.planning.random_shooting import object_mask, sample_near_objects
+from ldm_rl.planning.sampling import object_mask, sample_near_objects
 from policy_helpers import MAX_HEIGHT, scenes, transitions
 
 ROOT = Path(__file__).resolve().parents[1]

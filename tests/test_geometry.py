@@ -324,3 +324,17 @@ def test_workspace_pixel_metric_round_trip():
 def test_bad_input_raises_clear_value_errors(call, match):
     with pytest.raises(ValueError, match=match):
         call(scene(0, batch=(1,)))
+
+
+def test_flat_index_and_action_are_inverse_in_the_q_map_order():
+    from ldm_rl.geometry import action_to_flat, flat_to_action
+
+    g = torch.Generator().manual_seed(0)
+    r, h, w = 8, 16, 12
+    index = torch.randint(0, r * h * w, (500,), generator=g)
+    action = flat_to_action(index, h, w)
+    assert action.dtype == torch.int64 and action.shape == (500, 3)
+    assert torch.equal(action_to_flat(action, h, w), index)
+    q = torch.randn(2, r, h, w, generator=g)
+    row, col, rot = flat_to_action(q.flatten(1).argmax(1), h, w).unbind(-1)  # the order of a flattened map
+    assert torch.equal(q[torch.arange(2), rot, row, col], q.flatten(1).amax(1))

@@ -122,7 +122,9 @@ def _optimisation(agent_cfg: dict) -> dict:
 def build_fcdqn_agent(cfg: Mapping[str, Any], max_height: float):
     """FC-DQN (``ldm_rl.agents.fc_dqn``): the Q FCN of ``cfg.agent``, exploring by softmax(Q/τ) with the
     proposal temperature ``cfg.planner.tau``; ``cfg.model`` gives only the input quantisation."""
-    from ldm_rl.agents.fc_dqn import FCDQNAgent, QMapPolicy, SpatialDQNLoss
+    from ldm_rl.agents.fc_dqn import FCDQNAgent
+    from ldm_rl.objectives import SpatialDQNLoss
+    from ldm_rl.planning.q_map import QMapPolicy
 
     agent_cfg = _plain(cfg["agent"])
     q_network = _q_network(cfg, agent_cfg, max_height)
@@ -136,7 +138,9 @@ def build_rs_agent(cfg: Mapping[str, Any], max_height: float):
     """Random Shooting (``ldm_rl.agents.random_shooting``): ``cfg.planner.num_candidates`` near-object
     candidates (``agent.object_height_threshold``, ``agent.object_dilation``) scored by R + γV through the
     LDM of ``cfg.model``; no Q network is built."""
-    from ldm_rl.agents.random_shooting import RandomShootingAgent, RandomShootingLoss, RandomShootingPlanner
+    from ldm_rl.agents.random_shooting import RandomShootingAgent
+    from ldm_rl.objectives import RandomShootingLoss
+    from ldm_rl.planning.random_shooting import RandomShootingPlanner
 
     agent_cfg = _plain(cfg["agent"])
     height, dilation = _required(agent_cfg, "rs", "object_height_threshold", "object_dilation")
@@ -158,7 +162,8 @@ def build_dynaq_agent(cfg: Mapping[str, Any], max_height: float):
     """Dyna-Q (``ldm_rl.agents.dyna_q``): FC-DQN plus ``agent.imagined_ratio`` transitions per replayed one
     imagined by the LDM of ``cfg.model`` with rewards from the V CNN's reward head."""
     from ldm_rl.agents.dyna_q import DynaQAgent
-    from ldm_rl.agents.fc_dqn import QMapPolicy, SpatialDQNLoss
+    from ldm_rl.objectives import SpatialDQNLoss
+    from ldm_rl.planning.q_map import QMapPolicy
 
     agent_cfg = _plain(cfg["agent"])
     ratio, terminal = _required(agent_cfg, "dynaq", "imagined_ratio", "imagined_terminal_reward")

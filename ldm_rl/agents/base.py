@@ -1,4 +1,5 @@
-"""What every agent offers the training loop (``recipes/train_policy.py``) and the evaluator.
+"""What every agent offers the training loop (``recipes/train_policy.py``) and the evaluator, and the
+target-network trainer every agent of this package is.
 
 An agent owns its networks, losses, optimizers, LR schedules and target updater; the recipe owns the
 loop (collect → replay → ``agent.update(batch)`` → evaluate → checkpoint) in plain view.
@@ -12,8 +13,13 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
+from torchrl.objectives import LossModule
 
-__all__ = ["Agent", "is_target_entry"]
+from ldm_rl.objectives.target_sync import TargetSync
+from ldm_rl.planning.policy import StatePolicy
+from ldm_rl.runtime import make_adam
+
+__all__ = ["Agent", "TargetNetworkAgent", "is_target_entry"]
 
 
 def is_target_entry(key: str) -> bool:
@@ -98,3 +104,76 @@ class Agent(nn.Module):
             opt.load_state_dict(state["optimizers"][name])
         for name, sched in self.lr_schedulers.items():
             sched.load_state_dict(state["lr_schedulers"][name])
+
+
+class TargetNetworkAgent(Agent):
+    """The trainer every agent is: one Adam optimiser and StepLR per trained network (``lr`` / ``weight_decay``
+    dicts keyed by network name), the Q gradient clamp, :class:`~ldm_rl.objectives.TargetSync` of ``loss``'s
+    target networks (weights and buffers) every ``target_update_interval`` updates, the planner's schedules
+    following the update count, and the target updater's counter in :meth:`training_state`. A subclass
+    builds its losses in ``update`` / ``pretrain_update`` and hands their sum to :meth:`_step`.
+
+    ``networks``: name -> module of every network trained here (the optimisers' order)."""
+
+    def __init__(
+        self,
+        planner: StatePolicy,
+        loss: LossModule,
+        networks: dict[str, nn.Module],
+        *,
+        lr: dict[str, float],
+        weight_decay: dict[str, float] | None = None,
+        lr_decay: float = 0.95,
+        lr_decay_every: int = 2000,
+        target_update_interval: int = 100,
+        q_grad_clip: float | None = None,
+    ) -> None:
+        super().__init__()
+        if target_update_interval < 1 or lr_decay_every < 1 or not 0 < lr_decay <= 1:
+            raise ValueError(f"need target_update_interval >= 1, lr_decay_every >= 1, lr_decay in (0, 1]; got "
+                             f"{target_update_interval}, {lr_decay_every}, {lr_decay}")
+        self.planner, self.loss = planner, loss
+        self.trained = dict(networks)  # a plain dict: the modules are registered through planner and loss
+        weight_decay = weight_decay or {}
+        for name, module in self.trained.items():
+            if name not in lr or not lr[name] > 0:
+                raise ValueError(f"lr.{name} must be a positive number, got {lr.get(name)!r}")
+            self.optimizers[name] = make_adam(module.parameters(), lr=lr[name], weight_decay=weight_decay.get(name, 0.0))
+            self.lr_schedulers[name] = torch.optim.lr_scheduler.StepLR(self.optimizers[name], lr_decay_every, lr_decay)
+        self.q_grad_clip = q_grad_clip
+        self.target_updater = TargetSync(loss, interval=target_update_interval)
+
+    @property
+    def policy(self) -> StatePolicy:
+        return self.planner
+
+    def _train_mode(self) -> None:
+        for module in self.trained.values():
+            module.train()
+
+    def _step(self, total: torch.Tensor, *, count: bool = True) -> None:
+        """Backward ``total``, clamp the Q gradients, step the optimisers; with ``count`` (an update, not a
+        pretraining step) also the LR schedules, the target updater, the update count and the schedules."""
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        total.backward()
+        if self.q_grad_clip and "q" in self.trained:
+            grads = [p for p in self.trained["q"].parameters() if p.grad is not None]  # none in a model-only step
+            if grads:
+                torch.nn.utils.clip_grad_value_(grads, self.q_grad_clip)
+        for name in self.trained:
+            self.optimizers[name].step()
+            if count:
+                self.lr_schedulers[name].step()
+        if count:
+            self.target_updater.step()
+            self.updates += 1
+            self.planner.set_step(self.updates)
+
+    def training_state(self) -> dict:
+        return {**super().training_state(), "target_updater_counter": self.target_updater.counter}
+
+    def load_training_state(self, state: dict) -> None:
+        super().load_training_state(state)
+        self.target_updater.counter = int(state["target_updater_counter"])
+        self.planner.set_step(self.updates)

@@ -6,10 +6,10 @@ Each :meth:`DynaQAgent.update` on a replayed batch of B transitions:
    (``R(s') → r`` and ``R(f(s, a)) → r``; the value head is not used by this agent);
 2. imagines ``M = round(imagined_ratio · B)`` transitions in :class:`~ldm_rl.world_model.LDMImaginedEnv`:
    start states are the batch's own states ``s`` (rows ``0, 1, …, B−1, 0, 1, …``), actions are drawn by the
-   exploring policy (one ``softmax(Q/τ)`` draw, :class:`~ldm_rl.agents.fc_dqn.QMapPolicy`), the next state
+   exploring policy (one ``softmax(Q/τ)`` draw, :class:`~ldm_rl.planning.q_map.QMapPolicy`), the next state
    is ``f(s, a)`` and the reward ``R(f(s, a))`` from the reward head; an imagined transition is terminal
    when that reward exceeds ``terminal_reward`` (rewards are 0 except on success);
-3. takes one DQN step (:class:`~ldm_rl.agents.fc_dqn.SpatialDQNLoss`) on the B real and M imagined
+3. takes one DQN step (:class:`~ldm_rl.objectives.SpatialDQNLoss`) on the B real and M imagined
    transitions together (imagined rows with importance weight 1); the new priorities are the real rows'.
 
 Imagination uses the online networks in eval mode without gradients (the models' train/eval flags and
@@ -28,33 +28,16 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from ldm_rl import keys
-from ldm_rl.agents.fc_dqn import QMapPolicy, SpatialDQNLoss, TargetNetworkAgent
-from ldm_rl.agents.random_shooting import predicted_next_state, reward_head_loss
-from ldm_rl.objectives import LDMLoss
-from ldm_rl.runtime import eval_mode
+from ldm_rl.agents.base import TargetNetworkAgent
+from ldm_rl.objectives import LDMLoss, SpatialDQNLoss
+from ldm_rl.objectives.reward_head import predicted_next_state, reward_head_loss
+from ldm_rl.planning.q_map import QMapPolicy
 
-__all__ = ["DynaQAgent", "ImaginedReward", "TRANSITION_KEYS"]
+__all__ = ["DynaQAgent", "TRANSITION_KEYS"]
 
 STATE = (keys.HEIGHTMAP, keys.IN_HAND, keys.HOLDING)
 # what the DQN loss reads of a transition, real or imagined
 TRANSITION_KEYS = (*STATE, keys.ACTION, *((keys.NEXT, key) for key in (*STATE, keys.REWARD, keys.TERMINATED)))
-
-
-class ImaginedReward(nn.Module):
-    """``(heightmap, in_hand)`` of an imagined next state -> ``(reward, done, terminated)``, each ``[*B, 1]``:
-    the reward head of ``value_network`` (eval mode, no gradients), terminal when ``reward > terminal_reward``."""
-
-    def __init__(self, value_network: nn.Module, terminal_reward: float = 0.5) -> None:
-        super().__init__()
-        if not 0.0 < terminal_reward <= 1.0:
-            raise ValueError(f"terminal_reward must be in (0, 1], got {terminal_reward!r}")
-        self.value_network, self.terminal_reward = value_network, float(terminal_reward)
-
-    def forward(self, heightmap: torch.Tensor, in_hand: torch.Tensor):
-        with eval_mode(self.value_network):
-            _, reward = self.value_network.value_and_reward(heightmap, in_hand)
-        done = reward > self.terminal_reward
-        return reward, done, done.clone()
 
 
 class DynaQAgent(TargetNetworkAgent):
@@ -94,6 +77,8 @@ class DynaQAgent(TargetNetworkAgent):
             raise ValueError(f"imagined_ratio must be a number in [0, 16], got {imagined_ratio!r}")
         self.dynamics_loss, self.value_network = dynamics_loss, value_network
         self.imagined_ratio, self.reward_on_prediction = float(imagined_ratio), bool(reward_on_prediction)
+        from ldm_rl.world_model import ImaginedReward
+
         reward_model = TensorDictModule(ImaginedReward(value_network, terminal_reward),
                                         in_keys=[keys.HEIGHTMAP, keys.IN_HAND],
                                         out_keys=[keys.REWARD, keys.DONE, keys.TERMINATED])

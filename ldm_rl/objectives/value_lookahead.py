@@ -38,6 +38,7 @@ from torch import nn
 
 from ldm_rl import geometry, keys
 from ldm_rl.objectives.bootstrap_cache import BootstrapCache
+from ldm_rl.objectives.reward_head import predicted_next_state
 from ldm_rl.objectives.transition_loss import TransitionKeys, TransitionLoss
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
@@ -261,7 +262,8 @@ class LookaheadLoss(TransitionLoss):
         v_real, r_real = self.value_network.value_and_reward(next_heightmap, next_in_hand)
         loss_value, loss_reward = huber(v_real, v_target), huber(r_real, reward)
         if self.value_on_prediction:
-            predicted = self._predicted_next_state(tensordict)
+            predicted = predicted_next_state(self.dynamics, tensordict, logits_key=k.next_logits,
+                                             state_keys=(k.heightmap, k.in_hand, k.holding, k.action))
             v_pred, r_pred = self.value_network.value_and_reward(predicted.heightmap, next_in_hand)
             loss_value = loss_value + huber(v_pred, v_target)
             loss_reward = loss_reward + huber(r_pred, reward)
@@ -279,13 +281,3 @@ class LookaheadLoss(TransitionLoss):
             },
             batch_size=[],
         )
-
-    def _predicted_next_state(self, tensordict: TensorDictBase):
-        """``f(s, a)`` with the online model: from the LDM loss' ``next_logits`` when present."""
-        k = self.tensor_keys
-        args = [tensordict.get(key) for key in (k.heightmap, k.in_hand, k.holding, k.action)]
-        logits = tensordict.get(k.next_logits, None)
-        if logits is not None:
-            return self.dynamics.next_state_from_logits(*args, logits)
-        with eval_mode(self.dynamics):
-            return self.dynamics.predict(*args)

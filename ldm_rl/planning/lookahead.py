@@ -16,7 +16,7 @@ from torch import nn
 
 from ldm_rl.runtime import eval_mode
 
-__all__ = ["LookaheadResult", "lookahead"]
+__all__ = ["LookaheadResult", "lookahead", "shooting_scores"]
 
 
 class LookaheadResult(NamedTuple):
@@ -91,3 +91,12 @@ def lookahead(
         torch.cat(next_holding).reshape(b, n),
         *next_states,
     )
+
+
+def shooting_scores(dynamics, value_network, heightmap, in_hand, holding, candidates, *, gamma: float,
+                    chunk_size: int = 64) -> torch.Tensor:
+    """``R(f(s, a)) + γ·V(f(s, a))`` ``[B, N]`` of ``candidates`` ``[B, N, 3]`` (eval mode, no gradients): the
+    Random Shooting score, with ``value_network``'s reward head."""
+    out = lookahead(dynamics, value_network, heightmap, in_hand, holding, candidates, chunk_size=chunk_size,
+                    with_reward=True)
+    return out.rewards + gamma * out.values

@@ -19,43 +19,23 @@ so its N proposals stay on different objects however far training has annealed e
 
 from __future__ import annotations
 
-from typing import Callable, Union
-
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import nn
-from torchrl.envs.utils import ExplorationType, exploration_type
 
 from ldm_rl import geometry, keys
 from ldm_rl.planning.lookahead import lookahead
+from ldm_rl.planning.policy import ScheduleLike, StatePolicy
 from ldm_rl.planning.sampling import sample_candidates
 from ldm_rl.runtime import eval_mode
-from ldm_rl.schedules import Constant
 
-__all__ = ["LookaheadPlanner", "is_greedy"]
+__all__ = ["LookaheadPlanner"]
 
-ScheduleLike = Union[float, Callable[[int], float]]
 PROPOSAL_MODES = ("softmax", "argmax")
 GREEDY_SCHEDULES = ("start", "current")
-_GREEDY = (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN)
 
 
-def is_greedy() -> bool:
-    """True under ``set_exploration_type(DETERMINISTIC | MODE | MEAN)``; False when exploring or unset."""
-    return exploration_type() in _GREEDY
-
-
-def as_schedule(value: ScheduleLike, name: str) -> Callable[[int], float]:
-    """A float becomes a constant schedule; a callable is kept."""
-    if callable(value):
-        return value
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        return Constant(float(value))
-    raise ValueError(f"{name} must be a number or a schedule step -> float, got {value!r}")
-
-
-class LookaheadPlanner(TensorDictModuleBase):
+class LookaheadPlanner(StatePolicy):
     """Q proposals → LDM lookahead → V scores → action.
 
     Args:
@@ -80,8 +60,6 @@ class LookaheadPlanner(TensorDictModuleBase):
     ``[*B, N, 3]``, ``candidate_values`` ``[*B, N]``, ``state_value`` ``[*B, 1]`` and ``action_value``.
     """
 
-    in_keys = [keys.HEIGHTMAP, keys.IN_HAND, keys.HOLDING]
-
     def __init__(
         self,
         q_network: nn.Module,
@@ -101,7 +79,7 @@ class LookaheadPlanner(TensorDictModuleBase):
         autocast: str | None = None,
         write_action_value: bool = True,
     ) -> None:
-        super().__init__()
+        super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
         actions = getattr(q_network, "num_rotations", 1) * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
         if not isinstance(num_candidates, int) or isinstance(num_candidates, bool) or not 1 <= num_candidates <= actions:
             raise ValueError(f"num_candidates must be an int in [1, {actions}] (the Q map's rotations x pixels), "
@@ -118,20 +96,9 @@ class LookaheadPlanner(TensorDictModuleBase):
         self.q_network, self.dynamics, self.value_network = q_network, dynamics, value_network
         self.num_candidates, self.proposal, self.greedy_proposal = num_candidates, proposal, greedy_proposal
         self.chunk_size, self.write_action_value = int(chunk_size), bool(write_action_value)
-        self.schedules = {
-            name: as_schedule(value, name)
-            for name, value in (("tau", tau), ("beta", beta), ("sigma", sigma), ("sigma_rot", sigma_rot), ("tau_value", tau_value))
-        }
-        self.step = 0
         self.out_keys = [keys.ACTION, keys.CANDIDATE_ACTIONS, keys.CANDIDATE_VALUES, keys.STATE_VALUE] + (
             [keys.ACTION_VALUE] if write_action_value else []
         )
-
-    def set_step(self, step: int) -> None:
-        """Advance the schedules to training step ``step``."""
-        if not isinstance(step, int) or step < 0:
-            raise ValueError(f"step must be a non-negative int, got {step!r}")
-        self.step = step
 
     def hyperparameters(self, *, greedy: bool = False) -> dict[str, float]:
         """The schedules' values (τ, β, σ, σ_rot, τ_v) used when exploring (``greedy=False``, at :attr:`step`)
@@ -139,24 +106,13 @@ class LookaheadPlanner(TensorDictModuleBase):
         step = 0 if greedy and self.greedy_schedules == "start" else self.step
         return {name: float(schedule(step)) for name, schedule in self.schedules.items()}
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
+    def check_input(self, tensordict: TensorDictBase) -> None:
+        super().check_input(tensordict)
         for key, size in ((keys.HEIGHTMAP, geometry.HEIGHTMAP_SIZE), (keys.IN_HAND, geometry.HAND_SIZE)):
             shape, want = tuple(tensordict.get(key).shape), (*tensordict.batch_size, 1, size, size)
             if shape != want:  # checked here, on the caller's shapes (decide sees them with a batch dim added)
                 raise ValueError(f"{key} must have shape {want} (batch size {tuple(tensordict.batch_size)} + "
                                  f"[1, {size}, {size}] metres), got {shape}")
-        unbatched = tensordict.batch_dims == 0
-        td = tensordict.unsqueeze(0) if unbatched else tensordict
-        batch = td.batch_size
-        flat = td.reshape(-1)
-        heightmap, in_hand = flat.get(keys.HEIGHTMAP), flat.get(keys.IN_HAND)
-        holding = flat.get(keys.HOLDING).reshape(-1, 1).bool()
-        decision = self.decide(heightmap, in_hand, holding, greedy=is_greedy())
-        out = {name: value.reshape(*batch, *value.shape[1:]) for name, value in decision.items()}
-        for name, value in out.items():
-            tensordict.set(name, value.squeeze(0) if unbatched else value)
-        return tensordict
 
     def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
         """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]}``."""

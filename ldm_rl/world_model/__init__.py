@@ -13,6 +13,7 @@ _LAZY = {
     "DynamicsPredictor": "ldm_rl.world_model.modules",
     "ForesightTransform": "ldm_rl.world_model.transform",
     "LDMImaginedEnv": "ldm_rl.world_model.imagined_env",
+    "ImaginedReward": "ldm_rl.world_model.imagined_env",
 }
 
 __all__ = ["DynamicsModel", "DynamicsPrediction", "HandStateRule", "validate_state_action", "make_dynamics_model",

@@ -1,18 +1,21 @@
-"""``LDMImaginedEnv``: a TorchRL env that steps with the dynamics model (Dyna, planners, RandomPolicy, collectors)."""
+"""``LDMImaginedEnv``: a TorchRL env that steps with the dynamics model (Dyna, planners, RandomPolicy, collectors),
+and ``ImaginedReward``, a reward for it from a V CNN's reward head."""
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torch import nn
 from torchrl.data import Binary, Composite, MultiCategorical, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from ldm_rl.keys import DONE, HEIGHTMAP, HOLDING, IN_HAND, REWARD, TERMINATED, require_keys
+from ldm_rl.runtime import eval_mode
 from ldm_rl.world_model.core import HAND_SIZE, HEIGHTMAP_SIZE, DynamicsModel
 from ldm_rl.world_model.modules import ROOT_KEYS, STATE_KEYS, make_dynamics_module
 
-__all__ = ["LDMImaginedEnv"]
+__all__ = ["LDMImaginedEnv", "ImaginedReward"]
 
 
 class _RewardAndDone(TensorDictModuleBase):
@@ -118,3 +121,20 @@ class LDMImaginedEnv(ModelBasedEnvBase):
                              "env with start_states=...)")
         out.update(self.full_done_spec.zero(out.shape[: out.batch_dims - len(self.batch_size)]))  # specs hold batch_size
         return out
+
+
+class ImaginedReward(nn.Module):
+    """``(heightmap, in_hand)`` of an imagined next state -> ``(reward, done, terminated)``, each ``[*B, 1]``:
+    the reward head of ``value_network`` (eval mode, no gradients), terminal when ``reward > terminal_reward``."""
+
+    def __init__(self, value_network: nn.Module, terminal_reward: float = 0.5) -> None:
+        super().__init__()
+        if not 0.0 < terminal_reward <= 1.0:
+            raise ValueError(f"terminal_reward must be in (0, 1], got {terminal_reward!r}")
+        self.value_network, self.terminal_reward = value_network, float(terminal_reward)
+
+    def forward(self, heightmap: torch.Tensor, in_hand: torch.Tensor):
+        with eval_mode(self.value_network):
+            _, reward = self.value_network.value_and_reward(heightmap, in_hand)
+        done = reward > self.terminal_reward
+        return reward, done, done.clone()

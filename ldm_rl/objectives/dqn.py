@@ -1,0 +1,90 @@
+"""``SpatialDQNLoss``: DQN on a spatial Q map (the FC-DQN and Dyna-Q baselines' loss).
+
+A TorchRL ``LossModule`` in ``DQNLoss``'s style: Huber between ``Q(s, a)`` and ``y = r + γ·(1 − d)·max_{a'}
+Q⁻(s', a')``, weighted by the importance weights; writes ``td_error = |Q(s, a) − y|`` (the replay adds ε and
+the expert bonus). TorchRL's ``DQNLoss`` is not used: it evaluates the whole ``R·H·W`` map of ``s`` with
+gradients (R× the trunk passes of :meth:`~ldm_rl.models.q_fcn.QFCN.action_values`, which runs only the taken
+rotation) and squares the TD error.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from torch import nn
+
+from ldm_rl import keys
+from ldm_rl.objectives.transition_loss import TransitionLoss
+from ldm_rl.runtime import eval_mode
+
+__all__ = ["SpatialDQNLoss"]
+
+
+class SpatialDQNLoss(TransitionLoss):
+    """DQN on a spatial Q map: ``Q(s, a) ← r + γ·(1 − terminated)·max_{a'} Q⁻(s', a')``.
+
+    Args:
+        q_network: ``(heightmap, in_hand, holding) -> [B, R, H, W]`` with ``action_values(..., action) -> [B]``.
+        gamma: discount in [0, 1].
+        return_lower_bound: raise ``y`` to the batch's ``return_to_go`` where it is higher
+            (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
+
+    The target network is ``target_q_network_params`` (TorchRL ``convert_to_functional``), synced by a
+    target updater (:class:`~ldm_rl.objectives.TargetSync`); targets run in eval mode without gradients,
+    terminal rows skip the target pass. Writes ``td_error`` ``[B]`` = ``|Q(s, a) − y|`` into the input. Losses are Huber,
+    weighted by ``priority_weight`` when present.
+    """
+
+    q_network: nn.Module
+    q_network_params: TensorDictParams
+    target_q_network_params: TensorDictParams
+    out_keys = ["loss_q", "q_target", keys.CHOSEN_ACTION_VALUE, "td_error"]
+
+    def __init__(self, q_network: nn.Module, *, gamma: float = 0.95, return_lower_bound: bool = False) -> None:
+        super().__init__()
+        self.return_lower_bound = bool(return_lower_bound)
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
+        self.convert_to_functional(q_network, "q_network", create_target_params=True)
+        self.gamma = float(gamma)
+
+    @torch.no_grad()
+    def targets(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``y`` ``[B, 1]`` float32 with the target network."""
+        k = self.tensor_keys
+        reward = tensordict.get(k.reward).reshape(-1, 1).float()
+        live = ~tensordict.get(k.terminated).reshape(-1).bool()
+        q_next = torch.zeros_like(reward)
+        rows = live.nonzero().squeeze(1)
+        if rows.numel():
+            state = [tensordict.get((keys.NEXT, key)).index_select(0, rows) for key in (k.heightmap, k.in_hand)]
+            holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1, 1).bool().index_select(0, rows)
+            with self.target_q_network_params.to_module(self.q_network, preserve_module_state=False), \
+                    eval_mode(self.q_network):
+                q_next[rows] = self.q_network(*state, holding).flatten(1).amax(1, keepdim=True)
+        return self.lower_bounded(reward + self.gamma * q_next, tensordict)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
+        if tensordict.batch_dims != 1 or tensordict.batch_size[0] == 0:
+            raise ValueError(f"{type(self).__name__} needs a flat, non-empty batch of transitions, got batch_size "
+                             f"{tuple(tensordict.batch_size)}")
+        k = self.tensor_keys
+        target = self.targets(tensordict)
+        weight = tensordict.get(k.priority_weight, None)
+        weight = torch.ones_like(target) if weight is None else weight.reshape(-1, 1).to(target)
+        state = [tensordict.get(key) for key in (k.heightmap, k.in_hand)]
+        holding = tensordict.get(k.holding).reshape(-1, 1).bool()
+        q_pred = self.q_network.action_values(*state, holding, tensordict.get(k.action)).reshape(-1, 1)
+        td_error = (q_pred.detach() - target).abs().reshape(-1)
+        tensordict.set(k.priority, td_error)
+        return TensorDict(
+            {
+                "loss_q": (F.smooth_l1_loss(q_pred, target, reduction="none") * weight).mean(),
+                "q_target": target.mean(),
+                keys.CHOSEN_ACTION_VALUE: q_pred.detach().mean(),
+                "td_error": td_error.mean(),
+            },
+            batch_size=[],
+        )
