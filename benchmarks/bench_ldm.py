@@ -43,6 +43,7 @@ from ldm_rl.geometry import heights_to_classes  # noqa: E402
 from ldm_rl.objectives import LDMLoss  # noqa: E402
 from ldm_rl.runtime import make_adam  # noqa: E402
 from ldm_rl.world_model import build_dynamics_model, count_parameters  # noqa: E402
+from ldm_rl.world_model.training import dynamics_update  # noqa: E402
 
 MAX_HEIGHT = 0.15
 REFERENCE_CLASSES = 11  # the released configs
@@ -105,11 +106,7 @@ def time_steps(model_name: str, mode: str, args) -> list[float]:
         opt = (torch.optim.Adam(loss.parameters(), lr=1e-3) if args.plain_adam else make_adam(loss.parameters(), lr=1e-3))
 
         def step() -> None:
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                value = loss(batch)["loss_dynamics"]
-            opt.zero_grad(set_to_none=True)
-            value.backward()
-            opt.step()
+            dynamics_update(loss, opt, batch, autocast="bf16" if bf16 else None)  # the recipe's step
     else:
         ref = ReferenceLDMStep(heads=2 if model_name == "ref-2heads" else 1, num_classes=REFERENCE_CLASSES, bf16=bf16)
         if channels_last:

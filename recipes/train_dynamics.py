@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import sys
+import time
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -130,16 +131,22 @@ def train(cfg: DictConfig) -> dict:
     elif cfg.resume:
         log.info(f"resume=true: no checkpoint in {_short(str(out_dir))} yet; starting from iteration 0")
 
+    import numpy as np
     import torch
 
     import ldm_rl
-    from ldm_rl.checkpoint import CheckpointError, StopSignals, load_checkpoint
+    from ldm_rl.checkpoint import (CheckpointError, RunStopped, StopSignals, capture_rng_state, load_checkpoint,
+                                   restore_rng_state, save_checkpoint)
     from ldm_rl.metrics import MetricSettings
     from ldm_rl.objectives import LDMLoss
-    from ldm_rl.runtime import (atomic_write_text, close_logger, make_logger, resolve_device, save_resolved_config,
-                                seed_everything, set_threads)
+    from ldm_rl.plots import PlotDependencyError, plot_success_rate
+    from ldm_rl.progress import progress_bar
+    from ldm_rl.runtime import (atomic_write_text, close_logger, make_adam, make_logger, resolve_device,
+                                save_resolved_config, seed_everything, set_threads)
     from ldm_rl.world_model import build_dynamics_model, count_parameters
-    from ldm_rl.world_model.training import REQUIRED_KEYS, data_fingerprint, model_label, split_transitions, train_dynamics
+    from ldm_rl.world_model.training import (CURVE_NAME, REQUIRED_KEYS, PrimitiveBalancedSampler, data_fingerprint,
+                                             dynamics_update, evaluate, load_loss_state, loss_own_state, model_label,
+                                             prediction_grid, split_transitions, write_curve)
 
     set_threads(cfg.threads)
     seed_everything(int(cfg.seed))
@@ -186,15 +193,76 @@ def train(cfg: DictConfig) -> dict:
             "seed": int(cfg.seed), "data_sha256": fingerprint, "config": config, "max_height": max_height,
             "threads": torch.get_num_threads(), "device": str(device), "torch": torch.__version__,
             "ldm_rl": ldm_rl.__version__}
+    # the loop, in view: balanced minibatches -> one LDM step -> held-out evaluation -> checkpoint
+    optimizer = make_adam(loss.parameters(), lr=float(d.lr), weight_decay=float(d.weight_decay))
+    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=int(d.lr_decay_every), gamma=float(d.lr_decay))
+    sampler = PrimitiveBalancedSampler(train_set["holding"], int(d.batch_size), int(cfg.seed))
+    iterations = int(d.iterations)
+    rows: list[dict] = []  # one per evaluation (curve.csv)
+    running: list[float] = []  # the training losses since the last evaluation
+    done, elapsed_before = 0, 0.0
+    if checkpoint is not None:
+        state = checkpoint.state
+        done = int(state["iteration"])
+        if not 0 <= done <= iterations:
+            raise ConfigError(f"resume: the checkpoint is at iteration {done}, outside [0, dynamics.iterations={iterations}]")
+        load_loss_state(loss, model, state["model"], state["loss"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        rows, running = [dict(r) for r in state["rows"]], [float(x) for x in state["running"]]
+        elapsed_before = float(state["elapsed_s"])
+        restore_rng_state(state["rng"], {"sampler": sampler.generator})
+    start = time.perf_counter()
+
+    def elapsed() -> float:
+        return elapsed_before + time.perf_counter() - start
+
+    def save(iteration: int) -> None:
+        state = {"model": model.state_dict(), "loss": loss_own_state(loss, model), "optimizer": optimizer.state_dict(),
+                 "scheduler": scheduler.state_dict(), "rng": capture_rng_state({"sampler": sampler.generator}),
+                 "iteration": iteration, "rows": rows, "running": running, "elapsed_s": elapsed()}
+        with stop.saving():
+            save_checkpoint(checkpoint_path, state, meta={**meta, "iteration": iteration, "iterations": iterations,
+                                                          "complete": iteration == iterations,
+                                                          "metrics": rows[-1] if rows else None})
+
+    loss.train()
+    bar = progress_bar(total=iterations, initial=done, desc="train dynamics", unit="it", enabled=True)
     with StopSignals("the current iteration") as stop:
-        final = train_dynamics(
-            model, loss, train_set, val, out_dir=out_dir, settings=settings, iterations=int(d.iterations),
-            batch_size=int(d.batch_size), lr=float(d.lr), lr_decay=float(d.lr_decay), lr_decay_every=int(d.lr_decay_every),
-            weight_decay=float(d.weight_decay), eval_every=int(d.eval_every), eval_batch_size=int(d.eval_batch_size),
-            grid_samples=int(d.grid_samples), logger=logger, seed=int(cfg.seed),
-            autocast=d.get("autocast"), checkpoint_every=int(d.checkpoint_every), checkpoint_meta=meta,
-            resume=checkpoint, stop=stop, progress=True,
-        )
+        for iteration in range(done + 1, iterations + 1):
+            out = dynamics_update(loss, optimizer, train_set[sampler.sample()], autocast=d.get("autocast"))
+            scheduler.step()
+            running.append(out["loss_dynamics"].item())
+            bar.update(1)
+            if iteration % int(d.eval_every) == 0 or iteration == iterations:
+                row = {"iteration": iteration, "loss": float(np.mean(running)), "lr": scheduler.get_last_lr()[0],
+                       **evaluate(model, val, settings, int(d.eval_batch_size)), "elapsed_s": elapsed()}
+                running = []
+                rows.append(row)
+                write_curve(rows, out_dir / CURVE_NAME)
+                if logger is not None:
+                    scalars = {f"dynamics/{k}": v for k, v in row.items() if k != "iteration" and isinstance(v, (int, float))}
+                    scalars["dynamics/iterations_per_s"] = (iteration - done) / max(time.perf_counter() - start, 1e-9)
+                    logger.log_metrics(scalars, step=iteration)
+                bar.set_postfix(loss=f"{row['loss']:.4f}", SR=f"{100 * row['sr']:.1f}%", refresh=False)
+                log.info(f"[{iteration:>6}/{iterations}] loss {row['loss']:.4f}  L1 {row['l1_mm']:.2f} mm "
+                         f"(B_a {row['l1_region_mm']:.2f} mm)  SR {100 * row['sr']:.1f}% "
+                         f"(pick {100 * row['sr_pick']:.1f}%, place {100 * row['sr_place']:.1f}%)  {row['elapsed_s']:.0f}s")
+            saved = iteration == iterations or (int(d.checkpoint_every) and iteration % int(d.checkpoint_every) == 0)
+            if saved:
+                save(iteration)
+            if stop.requested and iteration < iterations:
+                if not saved:
+                    save(iteration)
+                bar.close()
+                raise RunStopped(stop.signal_name or "SIGTERM", iteration, iterations, checkpoint_path)
+    bar.close()
+    final = rows[-1]
+    try:
+        plot_success_rate(rows, out_dir / "sr_vs_iteration.png")
+        prediction_grid(model, val, out_dir / "predictions.png", int(d.grid_samples), settings)
+    except PlotDependencyError as err:
+        log.warning(f"{err}: skipping sr_vs_iteration.png and predictions.png")
     close_logger(logger)
     summary = {"task": task, "model": label, "preset": str(cfg.model.preset), "seed": int(cfg.seed),
                "train_transitions": int(train_set.shape[0]), "val_transitions": int(val.shape[0]), **final}

@@ -1,5 +1,5 @@
-"""The checkpoint format (ldm_rl.checkpoint): verification, atomic writes, RNG states, stale temporaries,
-stop signals, load_dynamics_checkpoint, and exact resume of train_dynamics (in process, synthetic data)."""
+"""The checkpoint format (ldm_rl.checkpoint): verification, atomic writes, RNG states, stale temporaries and
+stop signals (the dynamics recipe's exact resume: tests/test_dyn_recipe.py)."""
 
 import os
 import random
@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import torch
 
-from dyn_helpers import TINY, MAX_HEIGHT, one_torch_thread, transitions  # noqa: F401  (fixture)
 from ldm_rl import checkpoint as ck
 from ldm_rl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
@@ -182,81 +181,3 @@ def test_the_first_signal_says_what_it_waits_for_and_a_second_never_cuts_a_save(
 def test_importing_the_checkpoint_module_stays_light():
     code = "import sys, ldm_rl.checkpoint; assert 'torch' not in sys.modules and 'hydra' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
-
-
-# ------------------------------------------------------------------ train_dynamics + checkpoints
-
-
-def _training(tmp_path, name, *, iterations=6, resume=None, stop=None, checkpoint_every=0):
-    from ldm_rl.metrics import MetricSettings
-    from ldm_rl.objectives import LDMLoss
-    from ldm_rl.world_model import build_dynamics_model
-    from ldm_rl.world_model.training import train_dynamics
-
-    torch.manual_seed(0)
-    data = transitions(12, seed=3)
-    model = build_dynamics_model(TINY, MAX_HEIGHT)
-    loss = LDMLoss(model, class_weights="auto")
-    settings = MetricSettings(max_height=MAX_HEIGHT)
-    meta = {"kind": "dynamics", "preset": "lite", "task": "synthetic", "config": {"model": TINY, "env": {"max_height": MAX_HEIGHT}}}
-    final = train_dynamics(model, loss, data[:8], data[8:], out_dir=tmp_path / name, settings=settings, iterations=iterations,
-                           batch_size=4, eval_every=2, grid_samples=1, seed=0, checkpoint_every=checkpoint_every,
-                           checkpoint_meta=meta, resume=resume, stop=stop)
-    return final, load_checkpoint(tmp_path / name / "checkpoint.pt")
-
-
-def _same(a, b):
-    if isinstance(a, torch.Tensor):
-        return torch.equal(a, b)
-    if isinstance(a, dict):
-        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a if k != "elapsed_s")
-    if isinstance(a, (list, tuple)):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
-    return a == b
-
-
-class _FakeStop:
-    requested, signal_name = True, "SIGINT"
-
-    def saving(self):
-        import contextlib
-
-        return contextlib.nullcontext()
-
-
-@pytest.mark.usefixtures("one_torch_thread")
-def test_stop_then_resume_equals_an_uninterrupted_run(tmp_path):
-    full, reference = _training(tmp_path, "full")
-    assert reference.meta["complete"] and reference.state["iteration"] == 6 and len(reference.state["rows"]) == 3
-    with pytest.raises(ck.RunStopped) as stopped:
-        _training(tmp_path, "stopped", stop=_FakeStop())
-    assert stopped.value.iteration == 1 and stopped.value.exit_code == 130
-    partial = load_checkpoint(tmp_path / "stopped")
-    assert partial.state["iteration"] == 1 and not partial.meta["complete"]
-    resumed, final = _training(tmp_path, "stopped", resume=partial)
-    assert _same(resumed, full)
-    for key in ("model", "loss", "optimizer", "scheduler", "rows", "running"):
-        assert _same(final.state[key], reference.state[key]), key
-    assert not (tmp_path / "stopped" / "metrics.csv").exists()  # without a logger the rows live in the checkpoint only
-
-
-@pytest.mark.usefixtures("one_torch_thread")
-def test_periodic_checkpoints_and_load_dynamics_checkpoint(tmp_path):
-    from ldm_rl.world_model.factory import load_dynamics_checkpoint
-
-    _training(tmp_path, "run", iterations=4, checkpoint_every=2)
-    model, checkpoint = load_dynamics_checkpoint(tmp_path / "run", expect={"preset": "lite", "task": "synthetic"})
-    assert not model.training and checkpoint.meta["iteration"] == 4
-    assert all(torch.equal(v, checkpoint.state["model"][k]) for k, v in model.state_dict().items())
-    with pytest.raises(CheckpointError, match="task is 'synthetic', expected 'ldm_rl/HouseBuilding-v0'"):
-        load_dynamics_checkpoint(tmp_path / "run", expect={"task": "ldm_rl/HouseBuilding-v0"})
-    save_checkpoint(tmp_path / "agent.pt", {"agent": {}}, meta={"kind": "agent"})
-    with pytest.raises(CheckpointError, match="kind is 'agent', expected 'dynamics'"):
-        load_dynamics_checkpoint(tmp_path / "agent.pt")
-
-
-def test_dynamics_training_steps_adam_with_its_fused_kernel(tmp_path):
-    """train_dynamics builds its optimiser with ldm_rl.runtime.make_adam (saved param groups say so)."""
-    _, checkpoint = _training(tmp_path, "fused", iterations=2)
-    groups = checkpoint.state["optimizer"]["param_groups"]
-    assert groups and all(group["fused"] is True for group in groups)

@@ -1,4 +1,5 @@
-"""Recipes: config composition, Table-1 aggregation, and a smoke run of recipes/train_dynamics.py."""
+"""Recipes: config composition, Table-1 aggregation, a smoke run of recipes/train_dynamics.py and its exact
+resume after a stop."""
 
 import json
 import subprocess
@@ -110,6 +111,8 @@ def test_train_dynamics_recipe_smoke(tmp_path):
     assert checkpoint.meta["config"]["model"]["width"] == 0.125 and model.frame_size == 64
     assert {"model", "loss", "optimizer", "scheduler", "rng", "rows", "running", "iteration"} <= checkpoint.state.keys()
     assert checkpoint.state["rows"][-1]["sr"] == summary["sr"]
+    groups = checkpoint.state["optimizer"]["param_groups"]  # Adam with its fused kernel (ldm_rl.runtime.make_adam)
+    assert groups and all(group["fused"] is True for group in groups)
 
 
 TABLE1 = {"block_stacking": 5000, "house_building": 5000, "bottle_arrangement": 10000, "bin_packing": 10000}
@@ -131,3 +134,59 @@ def test_table1_presets_follow_the_protocol(task, iterations):
     assert default.dynamics.val_fraction == 0.2 and default.demos.noise.position > 0
     assert default.model.name == "ldm" and default.model.crop_size == 64
     config_schema.validate_config(default)
+
+
+def _dynamics_command(run_dir, *extra) -> list[str]:
+    return [sys.executable, str(ROOT / "recipes" / "train_dynamics.py"), "dynamics.num_demo_steps=24",
+            "dynamics.iterations=200", "dynamics.eval_every=100", "dynamics.checkpoint_every=2", "dynamics.batch_size=4",
+            "dynamics.grid_samples=1", "model.width=0.125", "demos.progress=false", "threads=1", f"hydra.run.dir={run_dir}",
+            *extra]
+
+
+def _same(a, b) -> bool:
+    import torch
+
+    if isinstance(a, torch.Tensor):
+        return torch.equal(a, b)
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a if k != "elapsed_s")
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+@pytest.mark.slow
+def test_a_stopped_dynamics_run_resumes_to_the_uninterrupted_weights(tmp_path):
+    """SIGTERM after the first checkpoint: the run saves, exits 143 with a resume line; resume=true then ends
+    with the weights, loss buffers, optimiser, schedule and curve of the uninterrupted run (same seed, one thread)."""
+    import signal
+    import time
+
+    from ldm_rl.checkpoint import CheckpointError, load_checkpoint
+    from ldm_rl.world_model.factory import load_dynamics_checkpoint
+
+    full = subprocess.run(_dynamics_command(tmp_path / "full"), capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert full.returncode == 0, full.stderr[-3000:]
+    run_dir = tmp_path / "stopped"
+    proc = subprocess.Popen(_dynamics_command(run_dir), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    deadline = time.time() + 600
+    while not (run_dir / "checkpoint.pt").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before its first checkpoint"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 128 + signal.SIGTERM and "resume with:" in err, err[-2000:]
+    stopped_at = load_checkpoint(run_dir).state["iteration"]
+    assert 2 <= stopped_at < 200 and not load_checkpoint(run_dir).meta["complete"]
+    resumed = subprocess.run(_dynamics_command(run_dir, "resume=true"), capture_output=True, text=True, cwd=tmp_path,
+                             timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    a, b = load_checkpoint(tmp_path / "full").state, load_checkpoint(run_dir).state
+    for key in ("model", "loss", "optimizer", "scheduler", "rows", "running", "iteration"):
+        assert _same(a[key], b[key]), key
+    model, checkpoint = load_dynamics_checkpoint(run_dir, expect={"preset": "lite"})
+    assert not model.training and checkpoint.meta["iteration"] == 200 and checkpoint.meta["complete"]
+    with pytest.raises(CheckpointError, match="task is 'ldm_rl/BlockStacking-v0', expected 'ldm_rl/HouseBuilding-v0'"):
+        load_dynamics_checkpoint(run_dir, expect={"task": "ldm_rl/HouseBuilding-v0"})
+

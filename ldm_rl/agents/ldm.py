@@ -17,6 +17,7 @@ from tensordict import TensorDictBase
 from ldm_rl.agents.base import TargetNetworkAgent
 from ldm_rl.objectives import LDMLoss, LookaheadLoss
 from ldm_rl.planning.planner import LookaheadPlanner
+from ldm_rl.world_model.training import dynamics_update
 
 __all__ = ["LDMAgent"]
 
@@ -45,8 +46,7 @@ class LDMAgent(TargetNetworkAgent):
     def pretrain_update(self, batch: TensorDictBase) -> dict[str, float]:
         """An LDM-only step (the model needs no targets): used on the expert data before acting."""
         self._train_mode()
-        out = self.dynamics_loss(batch)
-        self._step(out["loss_dynamics"], count=False)
+        out = dynamics_update(self.dynamics_loss, self.optimizers["dynamics"], batch)
         return {"loss_dynamics": float(out["loss_dynamics"].detach()), "pixel_accuracy": float(out["pixel_accuracy"])}
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:

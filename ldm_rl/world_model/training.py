@@ -1,37 +1,30 @@
-"""Supervised training of a dynamics model on demo transitions (used by ``recipes/train_dynamics.py``).
+"""Supervised training of a dynamics model on demo transitions: the pieces ``recipes/train_dynamics.py``
+holds its loop over (the loop itself is in the recipe, in view).
 
-Pieces: :func:`split_transitions` (held-out split by episode), :func:`evaluate` (L1 / SR of
+:class:`PrimitiveBalancedSampler` (half picks, half places), :func:`split_transitions` (held-out split by
+episode), :func:`dynamics_update` (one gradient step of an ``LDMLoss``: the recipe's, the LDM agent's
+model-only pretraining and ``benchmarks/bench_ldm.py`` share it), :func:`evaluate` (L1 / SR of
 ``ldm_rl.metrics`` over a dataset), :func:`prediction_grid` (predicts, then draws with ``ldm_rl.plots``),
-and :func:`train_dynamics` (the loop: Adam, step decay, periodic eval,
-scalars to a TorchRL logger, a progress bar, periodic checkpoints in the ``ldm_rl.checkpoint`` format, exact
-resume, a clean stop on SIGINT/SIGTERM).
+:func:`write_curve`, and the loss' own state beside the model's for checkpoints (:func:`loss_own_state`,
+:func:`load_loss_state`).
 """
 
 from __future__ import annotations
 
-import contextlib
-
-import logging
-import time
 from pathlib import Path
 from typing import Any, Mapping
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from ldm_rl.checkpoint import Checkpoint, RunStopped, StopSignals, capture_rng_state, restore_rng_state, save_checkpoint
 from ldm_rl.metrics import MetricSettings, floor_transition_metrics, summarize, summarize_floors, transition_metrics
-from ldm_rl.plots import PlotDependencyError, plot_success_rate
-from ldm_rl.progress import progress_bar
-from ldm_rl.runtime import make_adam
 from ldm_rl.world_model.core import DynamicsModel
 
-__all__ = ["PrimitiveBalancedSampler", "REQUIRED_KEYS", "split_transitions", "evaluate", "prediction_grid",
-           "train_dynamics", "model_label", "data_fingerprint"]
+__all__ = ["PrimitiveBalancedSampler", "REQUIRED_KEYS", "split_transitions", "dynamics_update", "evaluate",
+           "prediction_grid", "write_curve", "loss_own_state", "load_loss_state", "model_label", "data_fingerprint",
+           "CURVE_NAME", "CURVE_FIELDS"]
 
 REQUIRED_KEYS = ("heightmap", "in_hand", "holding", "action", ("next", "heightmap"), ("next", "holding"))
-log = logging.getLogger(__name__)
 
 
 def model_label(model_cfg: Mapping[str, Any]) -> str:
@@ -150,12 +143,46 @@ def prediction_grid(model: DynamicsModel, data: TensorDictBase, path: str | Path
     return Path(path)
 
 
+def dynamics_update(loss_module, optimizer: torch.optim.Optimizer, batch: TensorDictBase, *,
+                    autocast: str | None = None) -> TensorDictBase:
+    """One gradient step of ``loss_module`` (an :class:`~ldm_rl.objectives.LDMLoss`) on ``batch``: the forward
+    (under bf16 autocast with ``autocast="bf16"``: ≈ 1.5× faster for the paper preset on an AVX-512-bf16 CPU),
+    ``zero_grad``, ``backward``, ``optimizer.step()``. Returns the loss' output (``loss_dynamics``,
+    ``pixel_accuracy``); the LR schedule is the caller's."""
+    if autocast not in (None, "bf16"):
+        raise ValueError(f"autocast must be None or 'bf16', got {autocast!r}")
+    device = batch.device.type if batch.device is not None else "cpu"
+    with torch.autocast(device, dtype=torch.bfloat16, enabled=autocast == "bf16"):
+        out = loss_module(batch)
+    optimizer.zero_grad(set_to_none=True)
+    out["loss_dynamics"].backward()
+    optimizer.step()
+    return out
+
+
 def _prefix_of(module: torch.nn.Module, parent: torch.nn.Module) -> str | None:
     """The state_dict prefix of ``module`` inside ``parent`` ("" if it is ``parent``), None if absent."""
     for name, child in parent.named_modules():
         if child is module:
             return f"{name}." if name else ""
     return None
+
+
+def loss_own_state(loss_module: torch.nn.Module, model: torch.nn.Module) -> dict:
+    """``loss_module``'s state without ``model``'s (its own buffers: the class counts), for a checkpoint that
+    stores the model apart."""
+    state, prefix = loss_module.state_dict(), _prefix_of(model, loss_module)
+    return state if prefix is None else {k: v for k, v in state.items() if not k.startswith(prefix)}
+
+
+def load_loss_state(loss_module: torch.nn.Module, model: torch.nn.Module, model_state: dict, loss_state: dict) -> None:
+    """Load ``model_state`` into ``model`` and :func:`loss_own_state`'s ``loss_state`` into ``loss_module``."""
+    model.load_state_dict(model_state)
+    prefix = _prefix_of(model, loss_module)
+    if prefix:
+        loss_module.load_state_dict({**{prefix + k: v for k, v in model.state_dict().items()}, **loss_state})
+    elif prefix is None:
+        loss_module.load_state_dict(loss_state)
 
 
 CURVE_NAME = "curve.csv"
@@ -173,153 +200,3 @@ def write_curve(rows: list[dict], path: Path) -> None:
         writer = csv.DictWriter(f, fieldnames=CURVE_FIELDS, extrasaction="ignore")
         writer.writeheader()
         writer.writerows({key: row.get(key, "") for key in CURVE_FIELDS} for row in rows)
-
-
-def train_dynamics(
-    model: DynamicsModel,
-    loss_module,
-    train: TensorDictBase,
-    val: TensorDictBase,
-    *,
-    out_dir: str | Path,
-    settings: MetricSettings,
-    iterations: int,
-    batch_size: int = 32,
-    lr: float = 1e-3,
-    lr_decay: float = 0.95,
-    lr_decay_every: int = 2000,
-    weight_decay: float = 0.0,
-    eval_every: int = 100,
-    eval_batch_size: int = 64,
-    grid_samples: int = 6,
-    logger=None,
-    seed: int = 0,
-    autocast: str | None = None,
-    checkpoint_every: int = 0,
-    checkpoint_meta: Mapping[str, Any] | None = None,
-    resume: Checkpoint | Mapping[str, Any] | None = None,
-    stop: StopSignals | None = None,
-    progress: bool = False,
-) -> dict[str, Any]:
-    """Train ``loss_module`` (an ``LDMLoss`` around ``model``) and write the run's artefacts to ``out_dir``.
-
-    Minibatches are drawn with replacement by :class:`PrimitiveBalancedSampler` (half picks, half places).
-
-    Every evaluation logs its row (``loss``, ``lr``, ``l1_mm``, ``sr``..., ``elapsed_s``; every number of
-    :func:`evaluate`) as ``dynamics/<key>`` at step = iteration, plus ``dynamics/iterations_per_s``, to
-    ``logger`` (a TorchRL logger, e.g. from ``ldm_rl.runtime.make_logger``; None: not logged) and one
-    line to the ``logging`` module. ``progress``: a bar with ETA (plain lines off a terminal,
-    ``ldm_rl.progress``). Artefacts: ``checkpoint.pt`` (see below),
-    ``sr_vs_iteration.png`` and ``predictions.png`` (``ldm_rl.plots``; skipped with one line without
-    matplotlib). Returns the final metrics.
-    ``autocast="bf16"`` runs the loss forward under bf16 autocast (≈1.5× faster for the paper preset on
-    an AVX-512-bf16 CPU, see benchmarks/bench_ldm.py).
-
-    Checkpoints (``ldm_rl.checkpoint`` format, ``out_dir/checkpoint.pt``) are written every
-    ``checkpoint_every`` iterations (0: never in between), at the end, and when ``stop`` (a
-    :class:`~ldm_rl.checkpoint.StopSignals`) has caught a signal — then :class:`RunStopped` is raised.
-    Their state holds the model, the loss' own buffers (class counts), the optimizer, the LR schedule,
-    every RNG including the sampler's, the iteration, the metrics rows so far and the losses since the
-    last evaluation; their meta is ``checkpoint_meta`` (``kind``, ``preset``, ``task``, ``config``...)
-    plus ``iteration`` / ``iterations`` / ``complete``. ``resume`` (such a checkpoint) continues from
-    it: with the same data, seed, threads and device, the final weights and metrics equal an
-    uninterrupted run's bit for bit (the ``elapsed_s`` column is wall-clock time and does not).
-    """
-    if autocast not in (None, "bf16"):
-        raise ValueError(f"autocast must be null or 'bf16', got {autocast!r}")
-    if iterations < 1 or batch_size < 1 or eval_every < 1:
-        raise ValueError(f"iterations, batch_size and eval_every must be >= 1, got {iterations}, {batch_size}, {eval_every}")
-    if checkpoint_every < 0:
-        raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    checkpoint_path = out_dir / "checkpoint.pt"
-    optimizer = make_adam(loss_module.parameters(), lr=lr, weight_decay=weight_decay)
-    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=lr_decay_every, gamma=lr_decay)
-    sampler = PrimitiveBalancedSampler(train["holding"], batch_size, seed)
-    prefix = _prefix_of(model, loss_module)
-    rows: list[dict] = []
-    running: list[float] = []
-    done, elapsed_before = 0, 0.0
-
-    def own_loss_state() -> dict:
-        """The loss' own buffers (class counts), without the model's parameters."""
-        state = loss_module.state_dict()
-        return state if prefix is None else {k: v for k, v in state.items() if not k.startswith(prefix)}
-
-    if resume is not None:
-        state = resume.state if isinstance(resume, Checkpoint) else resume
-        done = int(state["iteration"])
-        if not 0 <= done <= iterations:
-            raise ValueError(f"resume: the checkpoint is at iteration {done}, outside [0, iterations={iterations}]")
-        model.load_state_dict(state["model"])
-        if prefix:
-            loss_module.load_state_dict({**{prefix + k: v for k, v in model.state_dict().items()}, **state["loss"]})
-        elif prefix is None:
-            loss_module.load_state_dict(state["loss"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        rows, running = [dict(r) for r in state["rows"]], [float(x) for x in state["running"]]
-        elapsed_before = float(state["elapsed_s"])
-        restore_rng_state(state["rng"], {"sampler": sampler.generator})
-
-    start = time.perf_counter()
-
-    def save(iteration: int) -> Path:
-        state = {
-            "model": model.state_dict(), "loss": own_loss_state(), "optimizer": optimizer.state_dict(),
-            "scheduler": scheduler.state_dict(), "rng": capture_rng_state({"sampler": sampler.generator}),
-            "iteration": iteration, "rows": rows, "running": running,
-            "elapsed_s": elapsed_before + time.perf_counter() - start,
-        }
-        meta = {"kind": "dynamics", **dict(checkpoint_meta or {}), "iteration": iteration, "iterations": iterations,
-                "complete": iteration == iterations, "metrics": rows[-1] if rows else None}
-        with stop.saving() if stop is not None else contextlib.nullcontext():
-            return save_checkpoint(checkpoint_path, state, meta=meta)
-
-    loss_module.train()
-    bar = progress_bar(total=iterations, initial=done, desc="train dynamics", unit="it", enabled=progress)
-    for iteration in range(done + 1, iterations + 1):
-        batch = train[sampler.sample()]
-        with torch.autocast(batch.device.type if batch.device else "cpu", dtype=torch.bfloat16, enabled=autocast == "bf16"):
-            loss = loss_module(batch)["loss_dynamics"]
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        scheduler.step()
-        running.append(loss.item())
-        bar.update(1)
-        if iteration % eval_every == 0 or iteration == iterations:
-            metrics = evaluate(model, val, settings, eval_batch_size)
-            row = {"iteration": iteration, "loss": float(np.mean(running)), "lr": scheduler.get_last_lr()[0],
-                   **metrics, "elapsed_s": elapsed_before + time.perf_counter() - start}
-            running = []
-            rows.append(row)
-            write_curve(rows, out_dir / CURVE_NAME)
-            if logger is not None:
-                scalars = {f"dynamics/{k}": v for k, v in row.items() if k != "iteration" and isinstance(v, (int, float))}
-                scalars["dynamics/iterations_per_s"] = (iteration - done) / max(time.perf_counter() - start, 1e-9)
-                logger.log_metrics(scalars, step=iteration)
-            bar.set_postfix(loss=f"{row['loss']:.4f}", SR=f"{100 * row['sr']:.1f}%", refresh=False)
-            log.info(
-                f"[{iteration:>6}/{iterations}] loss {row['loss']:.4f}  L1 {row['l1_mm']:.2f} mm "
-                f"(B_a {row['l1_region_mm']:.2f} mm)  SR {100 * row['sr']:.1f}% "
-                f"(pick {100 * row['sr_pick']:.1f}%, place {100 * row['sr_place']:.1f}%)  {row['elapsed_s']:.0f}s"
-            )
-        saved = False
-        if iteration == iterations or (checkpoint_every and iteration % checkpoint_every == 0):
-            save(iteration)
-            saved = True
-        if stop is not None and stop.requested and iteration < iterations:
-            if not saved:
-                save(iteration)
-            bar.close()
-            raise RunStopped(stop.signal_name or "SIGTERM", iteration, iterations, checkpoint_path)
-    bar.close()
-    final = rows[-1]
-    try:
-        plot_success_rate(rows, out_dir / "sr_vs_iteration.png")
-        prediction_grid(model, val, out_dir / "predictions.png", grid_samples, settings)
-    except PlotDependencyError as err:
-        log.warning(f"{err}: skipping sr_vs_iteration.png and predictions.png")
-    return final
