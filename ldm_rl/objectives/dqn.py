@@ -66,14 +66,10 @@ class SpatialDQNLoss(TransitionLoss):
         return self.lower_bounded(reward + self.gamma * q_next, tensordict)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
-        if tensordict.batch_dims != 1 or tensordict.batch_size[0] == 0:
-            raise ValueError(f"{type(self).__name__} needs a flat, non-empty batch of transitions, got batch_size "
-                             f"{tuple(tensordict.batch_size)}")
+        self.check_batch(tensordict)
         k = self.tensor_keys
         target = self.targets(tensordict)
-        weight = tensordict.get(k.priority_weight, None)
-        weight = torch.ones_like(target) if weight is None else weight.reshape(-1, 1).to(target)
+        weight = self.importance_weights(tensordict, target)
         state = [tensordict.get(key) for key in (k.heightmap, k.in_hand)]
         holding = tensordict.get(k.holding).reshape(-1, 1).bool()
         q_pred = self.q_network.action_values(*state, holding, tensordict.get(k.action)).reshape(-1, 1)

@@ -94,15 +94,11 @@ class RandomShootingLoss(TransitionLoss):
         return self.lower_bounded(target, tensordict, key=(keys.NEXT, self.tensor_keys.return_to_go))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
-        if tensordict.batch_dims != 1 or tensordict.batch_size[0] == 0:
-            raise ValueError(f"{type(self).__name__} needs a flat, non-empty batch of transitions, got batch_size "
-                             f"{tuple(tensordict.batch_size)}")
+        self.check_batch(tensordict)
         k = self.tensor_keys
         v_target = self.targets(tensordict)
         reward = tensordict.get(k.reward).reshape(-1, 1).float()
-        weight = tensordict.get(k.priority_weight, None)
-        weight = torch.ones_like(reward) if weight is None else weight.reshape(-1, 1).to(reward)
+        weight = self.importance_weights(tensordict, reward)
 
         def huber(pred, target):
             return (F.smooth_l1_loss(pred, target, reduction="none") * weight).mean()

@@ -66,6 +66,18 @@ class TransitionLoss(LossModule):
                            "in the batch: sample from FrameReplay(return_gamma=gamma)")
         return torch.maximum(target, bound.reshape(-1, 1).to(target))
 
+    def check_batch(self, tensordict: TensorDictBase) -> None:
+        """The input is a flat, non-empty batch of transitions with every in-key (one ``ValueError`` otherwise)."""
+        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
+        if tensordict.batch_dims != 1 or tensordict.batch_size[0] == 0:
+            raise ValueError(f"{type(self).__name__} needs a flat, non-empty batch of transitions, got batch_size "
+                             f"{tuple(tensordict.batch_size)}")
+
+    def importance_weights(self, tensordict: TensorDictBase, like: torch.Tensor) -> torch.Tensor:
+        """``[B, 1]`` prioritized-replay importance weights (``priority_weight``), ones without them; as ``like``."""
+        weight = tensordict.get(self.tensor_keys.priority_weight, None)
+        return torch.ones_like(like) if weight is None else weight.reshape(-1, 1).to(like)
+
     @property
     def in_keys(self) -> list[NestedKey]:
         k = self.tensor_keys

@@ -243,13 +243,10 @@ class LookaheadLoss(TransitionLoss):
         return torch.cat(values).reshape(b, n)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        keys.require_keys(tensordict, self.in_keys, type(self).__name__)
-        if tensordict.batch_dims != 1 or tensordict.batch_size[0] == 0:
-            raise ValueError(f"{type(self).__name__} needs a flat, non-empty batch of transitions, got batch_size {tuple(tensordict.batch_size)}")
+        self.check_batch(tensordict)
         k = self.tensor_keys
         q_target, v_target = self.targets(tensordict)
-        weight = tensordict.get(k.priority_weight, None)
-        weight = torch.ones_like(q_target) if weight is None else weight.reshape(-1, 1).to(q_target)
+        weight = self.importance_weights(tensordict, q_target)
 
         def huber(pred, target):
             return (F.smooth_l1_loss(pred, target, reduction="none") * weight).mean()
