@@ -2,7 +2,7 @@
 
 ``recipes/train_policy.py`` collects through three calls (docs/scaling.md walks through each setting)::
 
-    factory = TaskEnvFactory(cfg.env, reset_seed=seed * 1_000_000)       # picklable: worker -> env
+    factory = TaskEnvFactory(cfg.env, reset_seed=training_scenes(seed))   # picklable: worker -> env
     collector = make_collector(cfg.collector, factory, agent.policy, seed=seed)
     episodes = EpisodeAssembler(TRANSITION_KEYS)
     for step in collected_steps(collector):        # one transition at a time; weights refreshed per batch
@@ -39,6 +39,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from ldm_rl.seeds import SEED_BLOCK
+
 __all__ = ["BACKENDS", "LAUNCHERS", "DEFAULTS", "TaskEnvFactory", "make_collector", "collected_steps", "refresh_weights",
            "shutdown_collector", "EpisodeAssembler", "ScheduleSyncedPolicy", "worker_seed", "WORKER_KEY", "TRAJ_KEY"]
 
@@ -69,7 +71,7 @@ class TaskEnvFactory:
     """
 
     def __init__(self, env_cfg: Mapping[str, Any], *, reset_seed: int | None = None, start_episode: int = 0,
-                 seed_block: int = 1_000_000) -> None:
+                 seed_block: int = SEED_BLOCK) -> None:
         from omegaconf import OmegaConf
 
         if OmegaConf.is_config(env_cfg):

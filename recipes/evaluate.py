@@ -50,6 +50,7 @@ def evaluate(cfg: DictConfig) -> dict:
     from ldm_rl.agents import load_agent
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.evaluation import evaluate_policy
+    from ldm_rl.seeds import held_out_scenes
     from ldm_rl.runtime import atomic_write_text, hydra_output_dir, resolve_device, save_resolved_config, seed_everything, \
         set_threads
 
@@ -74,7 +75,7 @@ def evaluate(cfg: DictConfig) -> dict:
     env = make_env_from_config(env_cfg)
     recorded: list = []
     on_episode = (lambda index, rollout: recorded.append(rollout) if index < keep else None) if keep else None
-    result = evaluate_policy(env, agent.policy, int(cfg.episodes), seed=int(cfg.seed) + 2_000_000, progress=bool(cfg.progress),
+    result = evaluate_policy(env, agent.policy, int(cfg.episodes), seed=held_out_scenes(cfg.seed), progress=bool(cfg.progress),
                              on_episode=on_episode)
     summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name, **result.as_dict()}

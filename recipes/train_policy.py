@@ -69,10 +69,11 @@ def expert_episodes(cfg: DictConfig) -> list:
     import torch
 
     from ldm_rl.data.demos import collect_demos
+    from ldm_rl.seeds import expert_scenes
 
     s = cfg.schedule
     demos = collect_demos(OmegaConf.to_container(cfg.env, resolve=True), num_episodes=int(s.expert_episodes),
-                          seed=int(cfg.seed) + 10_000, procedure=s.expert_procedure,
+                          seed=expert_scenes(cfg.seed), procedure=s.expert_procedure,
                           noise=OmegaConf.to_container(s.expert_noise, resolve=True), progress=bool(s.progress))
     lengths = torch.unique_consecutive(demos["episode"], return_counts=True)[1].tolist()
     return list(demos.select(*TRANSITION_KEYS).split(lengths))
@@ -133,6 +134,7 @@ def train(cfg: DictConfig) -> dict:
     from ldm_rl.collectors import EpisodeAssembler, TaskEnvFactory, collected_steps, make_collector, shutdown_collector
     from ldm_rl.evaluation import evaluate_policy
     from ldm_rl.models.compile import compile_inference
+    from ldm_rl.seeds import evaluation_scenes, held_out_scenes, training_scenes
     from ldm_rl.progress import progress_bar
     from ldm_rl.runtime import atomic_write_text, close_logger, hydra_output_dir, make_logger, resolve_device, \
         save_resolved_config, seed_everything, set_threads
@@ -164,8 +166,8 @@ def train(cfg: DictConfig) -> dict:
     beta = instantiate(cfg.replay.beta)
     task = f"{cfg.env.id} ({cfg.env.num_objects} objects)"
     # the k-th training episode's scene comes from seed reset_seed + k, so a resumed run replays the same scenes
-    # (with collector.num_workers=N, worker w's scenes start at reset_seed + w * 1_000_000 // N: ldm_rl/collectors.py)
-    env_factory = TaskEnvFactory(cfg.env, reset_seed=int(cfg.seed) * 1_000_000)
+    # (with collector.num_workers=N, worker w's scenes start at reset_seed + w * SEED_BLOCK // N: ldm_rl/collectors.py)
+    env_factory = TaskEnvFactory(cfg.env, reset_seed=training_scenes(cfg.seed))
     eval_env = make_env_from_config(cfg.env)
     counters = {"episodes": 0, "env_steps": 0}
     curve, recent = [], deque(maxlen=100)
@@ -176,7 +178,7 @@ def train(cfg: DictConfig) -> dict:
     best = {"success_rate": -1.0}  # the best in-training evaluation so far (schedule.keep_best)
 
     def evaluate(episodes: int, on_episode=None) -> dict:
-        result = evaluate_policy(eval_env, agent.policy, episodes, seed=int(cfg.seed) + 1_000_000, progress=bool(s.progress),
+        result = evaluate_policy(eval_env, agent.policy, episodes, seed=evaluation_scenes(cfg.seed), progress=bool(s.progress),
                                  on_episode=on_episode)
         scores = {("eval_episodes" if key == "episodes" else key): value for key, value in result.as_dict().items()}
         row = {"updates": agent.updates, **counters, "wall_s": time.perf_counter() - start, **scores}
@@ -303,13 +305,13 @@ def train(cfg: DictConfig) -> dict:
                "preset": str(cfg.agent.preset or cfg.model.preset), **{k: final[k] for k in CURVE_FIELDS},
                "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}
     if cfg.env.id == PACKING_TASK:
-        summary["packing"] = packing_report(eval_env, final_returns, seed=int(cfg.seed) + 1_000_000, progress=bool(s.progress))
+        summary["packing"] = packing_report(eval_env, final_returns, seed=evaluation_scenes(cfg.seed), progress=bool(s.progress))
         log.info(f"bin packing, final weights: {_packing_line(summary['packing'])}; the scripted expert on the same "
                  f"scenes: {_packing_line(summary['packing']['expert'])}")
     if s.keep_best and (out_dir / BEST_NAME).exists():
         # the selected weights on scenes the selection never saw (evaluate.py's seed), not on the curve's
         agent.load_policy_state_dict(load_checkpoint(out_dir / BEST_NAME, map_location=device).state["agent"])
-        result = evaluate_policy(eval_env, agent.policy, int(s.final_eval_episodes), seed=int(cfg.seed) + 2_000_000,
+        result = evaluate_policy(eval_env, agent.policy, int(s.final_eval_episodes), seed=held_out_scenes(cfg.seed),
                                  progress=bool(s.progress))
         summary["best"] = {"selected_at": {k: best[k] for k in ("updates", "episodes", "env_steps", "wall_s", "success_rate")},
                            **{("eval_episodes" if k == "episodes" else k): v for k, v in result.as_dict().items()}}
