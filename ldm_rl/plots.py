@@ -180,7 +180,7 @@ def plot_prediction_grid(before, predicted, true, actions, path: str | Path, *, 
         actions: ``[N, 3]`` (row, col, rotation bin), drawn on every tile.
         max_height: top of the height colour scale (m), the task's ``max_height``.
         is_pick: ``[N]`` bool, True for picks (hand empty before the action); labels the rows.
-        correct: ``[N]`` bool, the metric's verdict (``ldm_rl.metrics.transition_metrics``' ``correct``).
+        correct: ``[N]`` bool, the metric's verdict (``ldm_rl.world_model.metrics.transition_metrics``' ``correct``).
 
     The three height columns share one colour bar in metres; the error column has its own colour map
     and colour bar in millimetres (square-root scale, so millimetre errors show beside centimetre ones).
@@ -231,7 +231,7 @@ def plot_success_rate(rows: Sequence[Mapping[str, float]], path: str | Path, *, 
     """Held-out action success rate (%) against training iterations: all transitions, picks, places.
 
     ``rows``: dicts with ``iteration`` and the fractions ``sr``, ``sr_pick``, ``sr_place`` (NaN = none);
-    with ``floor_sr`` / ``floor_sr_pick`` / ``floor_sr_place`` in the last row (``ldm_rl.metrics``' trivial
+    with ``floor_sr`` / ``floor_sr_pick`` / ``floor_sr_place`` in the last row (``ldm_rl.world_model.metrics``' trivial
     predictors on the same transitions) each floor is drawn dashed in its series' colour.
     """
     if not rows:

@@ -137,7 +137,7 @@ def train(cfg: DictConfig) -> dict:
     import ldm_rl
     from ldm_rl.checkpoint import (CheckpointError, RunStopped, StopSignals, capture_rng_state, load_checkpoint,
                                    restore_rng_state, save_checkpoint)
-    from ldm_rl.metrics import MetricSettings
+    from ldm_rl.world_model.metrics import MetricSettings
     from ldm_rl.objectives import LDMLoss
     from ldm_rl.plots import PlotDependencyError, plot_success_rate
     from ldm_rl.progress import progress_bar
@@ -267,7 +267,7 @@ def train(cfg: DictConfig) -> dict:
     summary = {"task": task, "model": label, "preset": str(cfg.model.preset), "seed": int(cfg.seed),
                "train_transitions": int(train_set.shape[0]), "val_transitions": int(val.shape[0]), **final}
     atomic_write_text(out_dir / "final_metrics.json", json.dumps(summary, indent=2))
-    from ldm_rl.metrics import format_report
+    from ldm_rl.world_model.metrics import format_report
 
     log.info(f"done: SR {100 * final['sr']:.1f}% (floor {100 * final.get('floor_sr', float('nan')):.1f}%)  "
              f"L1 {final['l1_mm']:.2f} mm per pixel -> {out_dir}\n{format_report(final, settings.iou_threshold)}"

@@ -5,7 +5,7 @@ import torch
 
 from dyn_helpers import block_scenes, tiny_model
 from dyn_helpers import one_torch_thread  # noqa: F401  (fixture)
-from ldm_rl.metrics import action_region_mask
+from ldm_rl.world_model.metrics import action_region_mask
 from ldm_rl.world_model import HandStateRule
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -10,8 +10,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from ldm_rl.metrics import (MetricSettings, floor_transition_metrics, format_report, summarize, summarize_floors,
-                            transition_metrics)
+from ldm_rl.world_model.metrics import (MetricSettings, floor_transition_metrics, format_report, summarize,
+                                        summarize_floors, transition_metrics)
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_HEIGHT, K = 0.15, 21

@@ -83,7 +83,7 @@ def test_prediction_grid_rejects_mismatched_inputs(tmp_path):
 
 
 def test_training_prediction_grid_labels_rows_by_the_metric(tmp_path):
-    from ldm_rl.metrics import MetricSettings, transition_metrics
+    from ldm_rl.world_model.metrics import MetricSettings, transition_metrics
     from ldm_rl.world_model.training import prediction_grid
 
     model, data = tiny_model(), transitions(4)

@@ -15,27 +15,11 @@ the same from a Hydra node; ``expert_policy(env)`` plays the scripted expert in 
 
 from __future__ import annotations
 
-import gymnasium as gym
-
 from ldm_rl.envs.base import ExpertNoise, PickPlaceEnv
+from ldm_rl.envs.registry import ENV_IDS, register_envs
 from ldm_rl.envs.torchrl_env import expert_policy, make_env, make_env_from_config
 
 __all__ = ["ENV_IDS", "ExpertNoise", "PickPlaceEnv", "expert_policy", "make_env", "make_env_from_config",
            "register_envs"]
-
-ENV_IDS = {
-    "ldm_rl/BlockStacking-v0": "ldm_rl.envs.tasks.block_stacking:BlockStackingEnv",
-    "ldm_rl/HouseBuilding-v0": "ldm_rl.envs.tasks.house_building:HouseBuildingEnv",
-    "ldm_rl/BottleArrangement-v0": "ldm_rl.envs.tasks.bottle_arrangement:BottleArrangementEnv",
-    "ldm_rl/BinPacking-v0": "ldm_rl.envs.tasks.bin_packing:BinPackingEnv",
-}
-
-
-def register_envs() -> None:
-    """Register every task id with gymnasium (idempotent; call it in spawned worker processes)."""
-    for env_id, entry_point in ENV_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry_point, disable_env_checker=True)
-
 
 register_envs()

@@ -73,7 +73,7 @@ def make_env(env_id: str, *, transforms: Iterable = (), **kwargs):
     from torchrl.envs import DTypeCastTransform, GymEnv
     from torchrl.envs.transforms import Transform
 
-    from ldm_rl.envs import ENV_IDS, register_envs
+    from ldm_rl.envs.registry import ENV_IDS, register_envs
 
     if env_id not in ENV_IDS:
         raise ValueError(f"env_id must be one of {sorted(ENV_IDS)}, got {env_id!r}")

@@ -4,7 +4,7 @@ holds its loop over (the loop itself is in the recipe, in view).
 :class:`PrimitiveBalancedSampler` (half picks, half places), :func:`split_transitions` (held-out split by
 episode), :func:`dynamics_update` (one gradient step of an ``LDMLoss``: the recipe's, the LDM agent's
 model-only pretraining and ``benchmarks/bench_ldm.py`` share it), :func:`evaluate` (L1 / SR of
-``ldm_rl.metrics`` over a dataset), :func:`prediction_grid` (predicts, then draws with ``ldm_rl.plots``),
+``ldm_rl.world_model.metrics`` over a dataset), :func:`prediction_grid` (predicts, then draws with ``ldm_rl.plots``),
 :func:`write_curve`, and the loss' own state beside the model's for checkpoints (:func:`loss_own_state`,
 :func:`load_loss_state`).
 """
@@ -17,7 +17,8 @@ from typing import Any, Mapping
 import torch
 from tensordict import TensorDictBase
 
-from ldm_rl.metrics import MetricSettings, floor_transition_metrics, summarize, summarize_floors, transition_metrics
+from ldm_rl.world_model.metrics import (MetricSettings, floor_transition_metrics, summarize, summarize_floors,
+                                        transition_metrics)
 from ldm_rl.world_model.core import DynamicsModel
 
 __all__ = ["PrimitiveBalancedSampler", "REQUIRED_KEYS", "split_transitions", "dynamics_update", "evaluate",
@@ -98,7 +99,7 @@ def split_transitions(data: TensorDictBase, val_fraction: float, seed: int) -> t
 def evaluate(model: DynamicsModel, data: TensorDictBase, settings: MetricSettings, batch_size: int = 64) -> dict[str, float]:
     """Metrics of ``model`` on every transition of ``data`` and, beside them, the floors of ``data``.
 
-    Returns (see ``ldm_rl.metrics``): ``l1_m`` / ``l1_mm`` / ``l1_region_m`` / ``l1_region_mm`` (per-pixel
+    Returns (see ``ldm_rl.world_model.metrics``): ``l1_m`` / ``l1_mm`` / ``l1_region_m`` / ``l1_region_mm`` (per-pixel
     means), ``sr`` / ``sr_pick`` / ``sr_place`` (fractions), ``sr_place_iouXX`` per
     ``settings.report_iou_thresholds``, and the floors of the same transitions: ``floor_sr`` /
     ``floor_sr_pick`` / ``floor_sr_place``, ``floor_pick_majority_success``, ``floor_l1_*``, ``n_pick`` / ``n_place``.
