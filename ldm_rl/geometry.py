@@ -188,12 +188,17 @@ def circular_bin_distance(a: Tensor, b: Tensor, num_rotations: int) -> Tensor:
 def flat_to_action(index: Tensor, height: int, width: int) -> Tensor:
     """Flat indices ``rot·H·W + row·W + col`` ``[*B]`` (the order of a ``[B, R, H, W]`` map flattened)
     -> actions ``[*B, 3]`` int64 (row, col, rot)."""
+    if not torch.is_tensor(index) or index.is_floating_point() or index.dtype == torch.bool:
+        raise ValueError(f"index must be an integer tensor of flat indices, got {getattr(index, 'dtype', type(index))}")
     rot, rem = index.div(height * width, rounding_mode="floor"), index.remainder(height * width)
     return torch.stack((rem.div(width, rounding_mode="floor"), rem.remainder(width), rot), dim=-1)
 
 
 def action_to_flat(action: Tensor, height: int, width: int) -> Tensor:
     """Actions ``[*B, 3]`` int64 (row, col, rot) -> flat indices ``rot·H·W + row·W + col`` ``[*B]``."""
+    if not torch.is_tensor(action) or action.is_floating_point() or action.dtype == torch.bool or action.shape[-1:] != (3,):
+        what = f"{tuple(action.shape)} {action.dtype}" if torch.is_tensor(action) else type(action).__name__
+        raise ValueError(f"action must be an integer tensor [*B, 3] (row, col, rot), got {what}")
     return (action[..., 2] * height + action[..., 0]) * width + action[..., 1]
 
 

@@ -338,3 +338,14 @@ def test_flat_index_and_action_are_inverse_in_the_q_map_order():
     q = torch.randn(2, r, h, w, generator=g)
     row, col, rot = flat_to_action(q.flatten(1).argmax(1), h, w).unbind(-1)  # the order of a flattened map
     assert torch.equal(q[torch.arange(2), rot, row, col], q.flatten(1).amax(1))
+
+
+def test_flat_index_conversions_refuse_floats_and_wrong_widths():
+    from ldm_rl.geometry import action_to_flat, flat_to_action
+
+    with pytest.raises(ValueError, match="integer tensor of flat indices"):
+        flat_to_action(torch.tensor([1.0]), 4, 4)
+    with pytest.raises(ValueError, match=r"\[\*B, 3\].*\(5, 2\)"):
+        action_to_flat(torch.zeros(5, 2, dtype=torch.long), 4, 4)
+    with pytest.raises(ValueError, match="integer tensor"):
+        action_to_flat(torch.zeros(5, 3), 4, 4)

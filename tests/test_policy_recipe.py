@@ -172,3 +172,17 @@ def test_updates_due_spreads_a_fractional_update_rate_evenly(rate, pattern):
         sys.path.remove(str(ROOT / "recipes"))
     assert [updates_due(n, rate) for n in range(1, 5)] == pattern
     assert sum(updates_due(n, 0.35) for n in range(1, 1001)) == 350  # exact rational arithmetic: no drift
+
+
+def test_the_short_try_runs_the_shipped_cpu_networks_without_pretraining():
+    """experiment=try: stacking_lite's networks and batch, no model-only pretraining, evaluation sized for a try;
+    an explicit env or agent on the command line still wins."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
+        cfg = compose("train_policy", overrides=["experiment=try", "env=house_building", "agent=fcdqn"])
+    assert cfg.agent.name == "fcdqn" and cfg.env.id == "ldm_rl/HouseBuilding-v0"
+    assert cfg.agent.q_width == 0.25 and cfg.replay.batch_size == 16 and cfg.threads == 1
+    s = cfg.schedule
+    assert (s.pretrain_updates, s.total_episodes, s.max_wall_clock_s, s.keep_best) == (0, 3, None, False)
+    assert (s.eval_episodes, s.final_eval_episodes) == (5, 10)
