@@ -446,6 +446,8 @@ class AgentConfig:
     return_lower_bound: bool = spec(False, doc="raise the targets to the return the episode collected")
     bootstrap_cache: int = spec(0, ge=0, doc="ldm: transitions whose bootstrap is kept until the next target copy "
                                 "(0 = off)")
+    value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns"),
+                                             doc="ldm: V fitted on next states turned by random quarter turns")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -467,8 +469,9 @@ class AgentConfig:
                 elif node.name != agent and node[key] is not None:
                     found.append(f"{prefix}{key}={_show(node[key])} is set but only agent={agent} uses it "
                                  f"(agent.name={node.name})")
-        if node.name != "ldm" and node.autocast is not None:
-            found.append(f"{prefix}autocast={_show(node.autocast)} is set but only agent=ldm uses it (agent.name={node.name})")
+        for key in ("autocast", "value_augmentation"):
+            if node.name != "ldm" and node.get(key) is not None:
+                found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
         cache = node.get("bootstrap_cache", 0)
         if cache and node.name != "ldm":
             found.append(f"{prefix}bootstrap_cache={cache} is set but only agent=ldm caches its bootstraps "

@@ -222,3 +222,34 @@ def test_bootstrap_cache_needs_deterministic_target_proposals():
         make_loss(bootstrap_cache=8, target_proposal={"mode": "softmax"})
     with pytest.raises(ValueError, match="bootstrap_cache must be an int >= 0"):
         make_loss(bootstrap_cache=-1)
+
+
+def test_quarter_turn_augmentation_fits_v_on_turned_copies_of_the_next_states():
+    """Each row's V input (real and predicted next state) is its stored heightmap turned by one whole quarter-turn
+    count, the same for both; over a seeded batch all four counts occur; the targets do not move."""
+    loss = make_loss(value_augmentation="quarter_turns")
+    batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
+    seen = []
+    original = loss.value_network.value_and_reward
+    loss.value_network.value_and_reward = lambda heightmap, in_hand: (seen.append(heightmap.detach()), original(heightmap, in_hand))[1]
+    torch.manual_seed(3)
+    out = loss(batch)
+    real, predicted = seen
+    stored = batch["next", "heightmap"]
+    turns = []
+    for row in range(24):
+        matches = [k for k in range(4) if torch.equal(real[row], stored[row].rot90(k, (-2, -1)))]
+        assert len(matches) == 1, f"row {row}: V saw no whole quarter turn of its next state"
+        turns.append(matches[0])
+    assert set(turns) == {0, 1, 2, 3}
+    plain = make_loss()
+    with torch.no_grad():
+        predicted_plain = []
+        original_plain = plain.value_network.value_and_reward
+        plain.value_network.value_and_reward = lambda h, i: (predicted_plain.append(h.detach()), original_plain(h, i))[1]
+        plain(batch.clone())
+    for row, k in enumerate(turns):  # the prediction is turned by the same count as the real state
+        assert torch.equal(predicted[row], predicted_plain[1][row].rot90(k, (-2, -1)))
+    torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
+    with pytest.raises(ValueError, match="value_augmentation must be one of"):
+        make_loss(value_augmentation="flips")

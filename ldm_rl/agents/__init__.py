@@ -55,6 +55,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         q_target=str(agent_cfg.get("q_target", "max")),
         return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)),
         bootstrap_cache=int(agent_cfg.get("bootstrap_cache") or 0),
+        value_augmentation=agent_cfg.get("value_augmentation"),
     )
     loss_cfg = _plain(cfg["loss"])
     class_weights = loss_cfg.get("class_weights")

@@ -44,7 +44,9 @@ from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
 from ldm_rl.runtime import eval_mode
 
-__all__ = ["LookaheadLoss"]
+__all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS"]
+
+VALUE_AUGMENTATIONS = (None, "quarter_turns")
 
 
 class LookaheadLoss(TransitionLoss):
@@ -74,6 +76,12 @@ class LookaheadLoss(TransitionLoss):
         bootstrap_cache: keep up to this many transitions' bootstraps (keyed by the batch's ``index``)
             until the next target copy (:class:`~ldm_rl.objectives.BootstrapCache`; 0 = off). The
             targets are the same; only rows not seen since the last copy run the target networks.
+        value_augmentation: ``None`` or ``"quarter_turns"``: V (and its reward head) is fitted on each next
+            state turned by its own random multiple of 90° about the heightmap's centre (torch's global
+            RNG). Every task here is invariant under it (square workspace, scenes drawn uniformly with
+            random yaws, physics and success blind to a turn about the vertical); Q and the LDM are
+            equivariant to quarter turns by construction, the V CNN is not, and it is the one network fitted
+            on whole scenes. The targets are computed on the states as stored (a turn leaves them unchanged).
     """
 
     @dataclass
@@ -111,8 +119,12 @@ class LookaheadLoss(TransitionLoss):
         q_target: str = "max",
         return_lower_bound: bool = False,
         bootstrap_cache: int = 0,
+        value_augmentation: str | None = None,
     ) -> None:
         super().__init__()
+        if value_augmentation not in VALUE_AUGMENTATIONS:
+            raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {value_augmentation!r}")
+        self.value_augmentation = value_augmentation
         self.return_lower_bound = bool(return_lower_bound)
         if q_target not in ("max", "lookahead"):
             raise ValueError(f"q_target must be 'max' or 'lookahead', got {q_target!r}")
@@ -242,6 +254,15 @@ class LookaheadLoss(TransitionLoss):
                       for i in range(0, b * n, self.chunk_size)]
         return torch.cat(values).reshape(b, n)
 
+    def _augmentation(self, heightmap: torch.Tensor):
+        """``heightmaps [B, 1, H, W] -> the same, turned``: the identity, or (``value_augmentation``) one random
+        quarter-turn count per row, drawn now and applied to every heightmap of that row."""
+        if self.value_augmentation is None:
+            return lambda images: images
+        turns = torch.randint(4, (heightmap.shape[0],), device=heightmap.device)
+        angles = turns.to(torch.float32) * (torch.pi / 2)
+        return lambda images: geometry.rotate(images, angles, mode="nearest")
+
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         self.check_batch(tensordict)
         k = self.tensor_keys
@@ -256,12 +277,13 @@ class LookaheadLoss(TransitionLoss):
         next_heightmap = tensordict.get((keys.NEXT, k.heightmap))
         next_in_hand = tensordict.get((keys.NEXT, k.in_hand))
         reward = tensordict.get(k.reward).reshape(-1, 1).float()
-        v_real, r_real = self.value_network.value_and_reward(next_heightmap, next_in_hand)
+        turn = self._augmentation(next_heightmap)
+        v_real, r_real = self.value_network.value_and_reward(turn(next_heightmap), next_in_hand)
         loss_value, loss_reward = huber(v_real, v_target), huber(r_real, reward)
         if self.value_on_prediction:
             predicted = predicted_next_state(self.dynamics, tensordict, logits_key=k.next_logits,
                                              state_keys=(k.heightmap, k.in_hand, k.holding, k.action))
-            v_pred, r_pred = self.value_network.value_and_reward(predicted.heightmap, next_in_hand)
+            v_pred, r_pred = self.value_network.value_and_reward(turn(predicted.heightmap), next_in_hand)
             loss_value = loss_value + huber(v_pred, v_target)
             loss_reward = loss_reward + huber(r_pred, reward)
         td_error = (v_real.detach() - v_target).abs().reshape(-1)
