@@ -8,7 +8,7 @@ One step = forward + backward + Adam on ``--batch`` transitions with random bloc
 picks, second half places), built once from one seed and shared by every row:
 
 * ``ours-paper`` / ``ours-lite``: ``LDMLoss`` (crop, depth classes, **one head per sample**, focal loss,
-  γ = 2, auto class weights) and Adam with its fused kernel (``ldm_rl.runtime.make_adam``) as the training
+  γ = 2, auto class weights) and Adam with its fused kernel (``ldm_rl.torch_utils.make_adam``) as the training
   recipe uses it (``--plain-adam``: torch's default for-loop Adam).
 * ``ref-1head`` / ``ref-2heads``: the released network rebuilt layer by layer in
   ``benchmarks/reference_ldm.py`` (24,893,963 parameters per head, K = 11 classes) and its released
@@ -41,7 +41,7 @@ from reference_ldm import REFERENCE_HEAD_PARAMS, ReferenceHead, ReferenceLDMStep
 
 from ldm_rl.geometry import heights_to_classes  # noqa: E402
 from ldm_rl.objectives import LDMLoss  # noqa: E402
-from ldm_rl.runtime import make_adam  # noqa: E402
+from ldm_rl.torch_utils import make_adam  # noqa: E402
 from ldm_rl.world_model import build_dynamics_model, count_parameters  # noqa: E402
 from ldm_rl.world_model.training import dynamics_update  # noqa: E402
 
@@ -143,7 +143,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed steps after the warm-up step")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     parser.add_argument("--plain-adam", action="store_true", help="ours: torch's default Adam (a for-loop on CPU) instead of "
-                        "the recipe's fused kernel (ldm_rl.runtime.make_adam)")
+                        "the recipe's fused kernel (ldm_rl.torch_utils.make_adam)")
     parser.add_argument("--single", nargs=2, metavar=("MODEL", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.batch < 2 or args.repeats < 1:

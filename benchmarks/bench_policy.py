@@ -40,7 +40,7 @@ from ldm_rl.models.q_fcn import build_q_network
 from ldm_rl.models.v_cnn import build_value_network
 from ldm_rl.objectives import LDMLoss, LookaheadLoss
 from ldm_rl.planning.planner import LookaheadPlanner
-from ldm_rl.runtime import make_adam
+from ldm_rl.torch_utils import make_adam
 from ldm_rl.world_model import build_dynamics_model
 
 MAX_HEIGHT = 0.25
@@ -112,7 +112,7 @@ def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0)
     from ldm_rl.agents import build_agent
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.models.compile import compile_inference
-    from ldm_rl.runtime import seed_everything
+    from ldm_rl.torch_utils import seed_everything
 
     root = pathlib.Path(__file__).resolve().parents[1]
     sys.path.insert(0, str(root / "recipes"))

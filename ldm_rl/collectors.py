@@ -111,7 +111,7 @@ def _worker_env(env_factory, worker: int, num_workers: int, seed: int, parent_pi
     training process itself (TorchRL's DistributedCollector builds one env there to learn the batch
     layout) only the env is built."""
     if os.getpid() != parent_pid:
-        from ldm_rl.runtime import seed_everything
+        from ldm_rl.torch_utils import seed_everything
 
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)

@@ -61,7 +61,7 @@ def evaluate_policy(env, policy, episodes: int, *, seed: int | None = None, max_
     import torch
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from ldm_rl.progress import progress_bar
+    from ldm_rl.run.progress import progress_bar
 
     if not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be a positive int, got {episodes!r}")
@@ -101,7 +101,7 @@ def episode_steps(rollout, *, episode: int = 0, dynamics=None, q_network=None) -
     import torch
 
     from ldm_rl import keys
-    from ldm_rl.runtime import eval_mode
+    from ldm_rl.torch_utils import eval_mode
 
     keys.require_keys(rollout, [keys.HEIGHTMAP, keys.IN_HAND, keys.HOLDING, keys.ACTION,
                                 (keys.NEXT, keys.HEIGHTMAP), (keys.NEXT, keys.REWARD)], "episode_steps")

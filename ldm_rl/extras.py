@@ -1,5 +1,5 @@
 """Optional packages and the extras that install them; light (standard library only), so the command-line
-pre-flight (``ldm_rl.config_schema``) and the runtime (``ldm_rl.runtime``) share one message."""
+pre-flight (``ldm_rl.config_schema``) and the loggers (``ldm_rl.run.outputs``) share one message."""
 
 from __future__ import annotations
 

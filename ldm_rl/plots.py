@@ -72,7 +72,7 @@ def _figure(width: float, height: float):
 
 
 def _save(fig, path: str | Path, suffix: str, dpi: float) -> Path:
-    from ldm_rl.runtime import atomic_path
+    from ldm_rl.run.outputs import atomic_path
 
     path = Path(path)
     if path.suffix.lower() != suffix:
@@ -471,7 +471,7 @@ def plot_episodes_gif(steps: Sequence[Mapping[str, Any]], path: str | Path, *, m
     path = Path(path)
     if path.suffix.lower() != ".gif":
         raise ValueError(f"GIF path must end in .gif, got {str(path)!r}")
-    from ldm_rl.runtime import atomic_path
+    from ldm_rl.run.outputs import atomic_path
 
     writer = PillowWriter(fps=fps)
     with atomic_path(path) as tmp:

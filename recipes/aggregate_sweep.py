@@ -5,7 +5,7 @@
 Reads the sweep's job folders (``<sweep>/<n>/`` with Hydra's ``.hydra/overrides.yaml``), each run's
 ``final_metrics.json`` and its ``curve.csv``: greedy success rate per evaluation (``recipes/train_policy.py``)
 or held-out SR per evaluation (``recipes/train_dynamics.py``; dynamics runs written before it had a curve.csv
-fall back on the CSV logger's scalars, ``ldm_rl.runtime.read_scalars``). Runs
+fall back on the CSV logger's scalars, ``ldm_rl.run.outputs.read_scalars``). Runs
 whose overrides differ only in ``seed`` (and ``resume``) form one group. Writes, by default into the
 sweep folder:
 
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.runtime import atomic_path, atomic_write_text  # noqa: E402
+from ldm_rl.run.outputs import atomic_path, atomic_write_text  # noqa: E402
 
 # overrides that tell replicates apart rather than name a variant
 REPLICATE_KEYS = ("seed", "resume")
@@ -95,7 +95,7 @@ def read_curve(path: Path) -> list[dict]:
 def read_dynamics_curve(path: Path) -> list[dict]:
     """One row per logged iteration, ``{"iteration": step, "<metric>": value, ...}``, from the CSV logger's
     ``dynamics/*`` scalars of a ``recipes/train_dynamics.py`` run; [] without them (another logger)."""
-    from ldm_rl.runtime import read_scalars
+    from ldm_rl.run.outputs import read_scalars
 
     try:
         scalars = read_scalars(path)

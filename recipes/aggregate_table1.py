@@ -28,7 +28,7 @@ from collections import defaultdict
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.runtime import atomic_write_text  # noqa: E402
+from ldm_rl.run.outputs import atomic_write_text  # noqa: E402
 
 TASKS = ("block_stacking", "house_building", "bottle_arrangement", "bin_packing")
 MODELS = ("LDM(64)", "LDM(128)", "Naive")

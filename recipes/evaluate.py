@@ -28,14 +28,15 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from ldm_rl.config_schema import EvaluateConfig, check_command_line, validate_config
+from ldm_rl.config_schema import EvaluateConfig, validate_config
+from ldm_rl.run.cli import check_command_line
 
 log = logging.getLogger("evaluate")
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> dict:
-    from ldm_rl.checkpoint import CheckpointError
+    from ldm_rl.run.checkpoint import CheckpointError
     from ldm_rl.plots import PlotDependencyError
 
     try:
@@ -51,8 +52,8 @@ def evaluate(cfg: DictConfig) -> dict:
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.evaluation import evaluate_policy
     from ldm_rl.seeds import held_out_scenes
-    from ldm_rl.runtime import atomic_write_text, hydra_output_dir, resolve_device, save_resolved_config, seed_everything, \
-        set_threads
+    from ldm_rl.run.outputs import atomic_write_text, hydra_output_dir, save_resolved_config
+    from ldm_rl.torch_utils import resolve_device, seed_everything, set_threads
 
     validate_config(cfg, EvaluateConfig)
     keep = int(cfg.render.episodes)
@@ -105,7 +106,7 @@ def render_episodes(rollouts: list, agent, cfg: DictConfig, out_dir, *, max_heig
     episodes in ``out_dir``; returns what was written (paths relative to ``out_dir``)."""
     from ldm_rl.evaluation import episode_steps
     from ldm_rl.plots import plot_decision, plot_episodes_gif
-    from ldm_rl.progress import progress_bar
+    from ldm_rl.run.progress import progress_bar
 
     dynamics, q_network = world_model(agent), getattr(agent.policy, "q_network", None)
     steps = [row for index, rollout in enumerate(rollouts)

@@ -30,7 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from ldm_rl.evaluation import wilson_interval  # noqa: E402
-from ldm_rl.runtime import atomic_write_text  # noqa: E402
+from ldm_rl.run.outputs import atomic_write_text  # noqa: E402
 
 EVALUATE = ROOT / "recipes" / "evaluate.py"
 # the paper's protocol: the object count each task's agent is trained on (its zero-shot counts are in the preset)
@@ -121,7 +121,7 @@ def find_inputs(paths: list[Path]) -> tuple[list[Path], list[Path], list[Path]]:
 
 def checkpoint_info(path: Path) -> dict:
     """agent, task (env id), trained object count and seed of an agent checkpoint (its meta; no torch)."""
-    from ldm_rl.checkpoint import read_checkpoint_meta
+    from ldm_rl.run.checkpoint import read_checkpoint_meta
 
     meta = read_checkpoint_meta(path)
     if meta.get("kind") != "agent":

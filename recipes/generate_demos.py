@@ -18,7 +18,8 @@ import sys
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import check_command_line, validate_config  # registers the schema
+from ldm_rl.config_schema import validate_config  # registers the schema
+from ldm_rl.run.cli import check_command_line
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +29,8 @@ def main(cfg: DictConfig) -> None:
     from pathlib import Path
 
     from ldm_rl.data.demos import collect_demos, save_demos
-    from ldm_rl.runtime import hydra_output_dir, save_resolved_config, seed_everything, set_threads
+    from ldm_rl.run.outputs import hydra_output_dir, save_resolved_config
+    from ldm_rl.torch_utils import seed_everything, set_threads
 
     validate_config(cfg)  # each job of a sweep; a single run was checked before Hydra started
     set_threads(cfg.threads)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.runtime import atomic_path  # noqa: E402
+from ldm_rl.run.outputs import atomic_path  # noqa: E402
 
 # panel order and names of the paper's tasks (env ids of conf/env/*.yaml)
 TASKS = {

@@ -23,7 +23,7 @@ from collections import defaultdict
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.runtime import atomic_path  # noqa: E402
+from ldm_rl.run.outputs import atomic_path  # noqa: E402
 
 MODELS = {"LDM(64)": "C0", "LDM(128)": "C1", "Naive": "C2"}
 PANELS = (("sr_place", "floor_sr_place", "Place actions"), ("sr", "floor_sr", "All actions"))

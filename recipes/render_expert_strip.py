@@ -20,7 +20,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import check_command_line  # registers the schema
+from ldm_rl.run.cli import check_command_line  # registers the schema
 
 log = logging.getLogger(__name__)
 DPI = 100

@@ -7,7 +7,7 @@
     python recipes/train_dynamics.py resume=true hydra.run.dir=outputs/2025-01-01/12-00-00   # continue a run
 
 Writes to the Hydra run directory: the logger's scalars (``logger=csv`` default: train_dynamics/scalars/dynamics/*.csv,
-one per metric, read with ``ldm_rl.runtime.read_scalars``; tensorboard | wandb | mlflow | none, docs/logging.md),
+one per metric, read with ``ldm_rl.run.outputs.read_scalars``; tensorboard | wandb | mlflow | none, docs/logging.md),
 checkpoint.pt (every dynamics.checkpoint_every iterations, at the end, and on SIGINT/SIGTERM), final_metrics.json,
 curve.csv (one line per evaluation: SR overall / picks / places, L1, the floors; recipes/plot_sample_efficiency.py),
 sr_vs_iteration.png, predictions.png (before | predicted | true | |error|), config_resolved.yaml and train_dynamics.log
@@ -30,7 +30,8 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import ConfigError, check_command_line, config_differences, validate_config  # registers the schema
+from ldm_rl.config_schema import ConfigError, config_differences, validate_config  # registers the schema
+from ldm_rl.run.cli import check_command_line
 
 CHECKPOINT = "checkpoint.pt"
 log = logging.getLogger("train_dynamics")
@@ -88,9 +89,10 @@ def resume_hint(out_dir) -> str:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> dict:
-    from ldm_rl.checkpoint import CheckpointError, RunStopped
+    from ldm_rl.run.checkpoint import CheckpointError
+    from ldm_rl.run.signals import RunStopped
     from ldm_rl.data.demos import DemoDataError
-    from ldm_rl.runtime import MissingExtraError, hydra_output_dir
+    from ldm_rl.run.outputs import MissingExtraError, hydra_output_dir
 
     try:
         return train(cfg)
@@ -108,8 +110,8 @@ def main(cfg: DictConfig) -> dict:
 
 def train(cfg: DictConfig) -> dict:
     """The run (``main`` without the one-line error reporting)."""
-    from ldm_rl.checkpoint import clean_stale_temporaries, read_checkpoint_meta
-    from ldm_rl.runtime import hydra_output_dir
+    from ldm_rl.run.checkpoint import clean_stale_temporaries, read_checkpoint_meta
+    from ldm_rl.run.outputs import hydra_output_dir
 
     validate_config(cfg)  # the command line was checked before Hydra started; this covers each job of a sweep
     out_dir = hydra_output_dir()
@@ -135,14 +137,14 @@ def train(cfg: DictConfig) -> dict:
     import torch
 
     import ldm_rl
-    from ldm_rl.checkpoint import (CheckpointError, RunStopped, StopSignals, capture_rng_state, load_checkpoint,
-                                   restore_rng_state, save_checkpoint)
+    from ldm_rl.run.checkpoint import CheckpointError, capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
+    from ldm_rl.run.signals import RunStopped, StopSignals
     from ldm_rl.world_model.metrics import MetricSettings
     from ldm_rl.objectives import LDMLoss
     from ldm_rl.plots import PlotDependencyError, plot_success_rate
-    from ldm_rl.progress import progress_bar
-    from ldm_rl.runtime import (atomic_write_text, close_logger, make_adam, make_logger, resolve_device,
-                                save_resolved_config, seed_everything, set_threads)
+    from ldm_rl.run.progress import progress_bar
+    from ldm_rl.run.outputs import atomic_write_text, close_logger, make_logger, save_resolved_config
+    from ldm_rl.torch_utils import make_adam, resolve_device, seed_everything, set_threads
     from ldm_rl.world_model import build_dynamics_model, count_parameters
     from ldm_rl.world_model.training import (CURVE_NAME, REQUIRED_KEYS, PrimitiveBalancedSampler, data_fingerprint,
                                              dynamics_update, evaluate, load_loss_state, loss_own_state, model_label,

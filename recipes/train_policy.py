@@ -34,7 +34,8 @@ from fractions import Fraction
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import ConfigError, TrainPolicyConfig, check_command_line, validate_config
+from ldm_rl.config_schema import ConfigError, TrainPolicyConfig, validate_config
+from ldm_rl.run.cli import check_command_line
 
 TRANSITION_KEYS = ("heightmap", "in_hand", "holding", "action",
                    ("next", "heightmap"), ("next", "in_hand"), ("next", "holding"), ("next", "reward"),
@@ -91,7 +92,7 @@ def write_curve(rows: list[dict], out_dir, title: str) -> None:
     import csv
 
     from ldm_rl.plots import PlotDependencyError, plot_learning_curve
-    from ldm_rl.runtime import atomic_path
+    from ldm_rl.run.outputs import atomic_path
 
     with atomic_path(out_dir / "curve.csv") as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=CURVE_FIELDS)
@@ -107,8 +108,9 @@ def write_curve(rows: list[dict], out_dir, title: str) -> None:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train_policy")
 def main(cfg: DictConfig) -> dict:
     """The run, with one-line reports of a stop signal or a bad checkpoint/config."""
-    from ldm_rl.checkpoint import CheckpointError, RunStopped
-    from ldm_rl.runtime import MissingExtraError, hydra_output_dir
+    from ldm_rl.run.checkpoint import CheckpointError
+    from ldm_rl.run.signals import RunStopped
+    from ldm_rl.run.outputs import MissingExtraError, hydra_output_dir
 
     try:
         return train(cfg)
@@ -127,17 +129,17 @@ def train(cfg: DictConfig) -> dict:
     from hydra.utils import instantiate
 
     from ldm_rl.agents import build_agent
-    from ldm_rl.checkpoint import (CHECKPOINT_NAME, RunStopped, StopSignals, capture_rng_state, clean_stale_temporaries,
-                                   load_checkpoint, restore_rng_state, save_checkpoint)
+    from ldm_rl.run.checkpoint import CHECKPOINT_NAME, capture_rng_state, clean_stale_temporaries, load_checkpoint, restore_rng_state, save_checkpoint
+    from ldm_rl.run.signals import RunStopped, StopSignals
     from ldm_rl.data.replay import FrameReplay
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.collectors import EpisodeAssembler, TaskEnvFactory, collected_steps, make_collector, shutdown_collector
     from ldm_rl.evaluation import evaluate_policy
     from ldm_rl.models.compile import compile_inference
     from ldm_rl.seeds import evaluation_scenes, held_out_scenes, training_scenes
-    from ldm_rl.progress import progress_bar
-    from ldm_rl.runtime import atomic_write_text, close_logger, hydra_output_dir, make_logger, resolve_device, \
-        save_resolved_config, seed_everything, set_threads
+    from ldm_rl.run.progress import progress_bar
+    from ldm_rl.run.outputs import atomic_write_text, close_logger, hydra_output_dir, make_logger, save_resolved_config
+    from ldm_rl.torch_utils import resolve_device, seed_everything, set_threads
 
     validate_config(cfg, TrainPolicyConfig)  # the command line was checked before Hydra; this covers sweep jobs
     set_threads(cfg.threads)

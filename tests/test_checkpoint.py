@@ -1,4 +1,4 @@
-"""The checkpoint format (ldm_rl.checkpoint): verification, atomic writes, RNG states, stale temporaries and
+"""The checkpoint format (ldm_rl.run.checkpoint, ldm_rl.run.signals): verification, atomic writes, RNG states, stale temporaries and
 stop signals (the dynamics recipe's exact resume: tests/test_dyn_recipe.py)."""
 
 import os
@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from ldm_rl import checkpoint as ck
-from ldm_rl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from ldm_rl.run import checkpoint as ck
+from ldm_rl.run import signals
+from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 META = {"kind": "dynamics", "preset": "lite", "task": "ldm_rl/BlockStacking-v0", "config": {"env": {"num_rotations": 8}}}
 
@@ -150,22 +151,22 @@ def test_stop_signals_set_a_flag_then_a_second_signal_aborts():
     # SIGTERM both times: a suite started in the background (`pytest &`) inherits an ignored SIGINT, which
     # StopSignals leaves ignored on purpose
     previous = signal.getsignal(signal.SIGTERM)
-    with ck.StopSignals() as stop:
+    with signals.StopSignals() as stop:
         os.kill(os.getpid(), signal.SIGTERM)
         assert stop.requested and stop.signal_name == "SIGTERM"
         with pytest.raises(SystemExit) as exited:
             os.kill(os.getpid(), signal.SIGTERM)
         assert exited.value.code == 128 + signal.SIGTERM
     assert signal.getsignal(signal.SIGTERM) is previous
-    stopped = ck.RunStopped("SIGTERM", 30, 400, "run/checkpoint.pt")
+    stopped = signals.RunStopped("SIGTERM", 30, 400, "run/checkpoint.pt")
     assert str(stopped) == "stopped by SIGTERM at iteration 30/400; checkpoint saved to run/checkpoint.pt"
     assert stopped.exit_code == 143
-    budget = ck.RunStopped("SIGINT", 24, 100000, "c.pt", unit="episode", position="episode 24, 12.0 of 36.0 min")
+    budget = signals.RunStopped("SIGINT", 24, 100000, "c.pt", unit="episode", position="episode 24, 12.0 of 36.0 min")
     assert str(budget) == "stopped by SIGINT at episode 24, 12.0 of 36.0 min; checkpoint saved to c.pt"
 
 
 def test_the_first_signal_says_what_it_waits_for_and_a_second_never_cuts_a_save(capsys):
-    with ck.StopSignals("the current episode") as stop:
+    with signals.StopSignals("the current episode") as stop:
         os.kill(os.getpid(), signal.SIGTERM)
         assert capsys.readouterr().err.startswith("SIGTERM: stopping after the current episode, then saving a checkpoint")
         written = []
@@ -179,5 +180,5 @@ def test_the_first_signal_says_what_it_waits_for_and_a_second_never_cuts_a_save(
 
 
 def test_importing_the_checkpoint_module_stays_light():
-    code = "import sys, ldm_rl.checkpoint; assert 'torch' not in sys.modules and 'hydra' not in sys.modules"
+    code = "import sys, ldm_rl.run.checkpoint, ldm_rl.run.signals; assert 'torch' not in sys.modules and 'hydra' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -180,7 +180,7 @@ def test_two_workers_get_new_weights_and_step_one_thread_and_own_seeds():
 def test_two_worker_train_policy_runs_are_seeded_and_reproducible(tmp_path):
     """recipes/train_policy.py with collector.num_workers=2, twice: the same weights; episodes of both
     workers reach the replay whole."""
-    from ldm_rl.checkpoint import load_checkpoint
+    from ldm_rl.run.checkpoint import load_checkpoint
 
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg", "RL_WARNINGS": "0"}
     tiny = ["experiment=smoke", "collector.num_workers=2", "env.max_steps=4", "schedule.total_episodes=4",

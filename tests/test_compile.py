@@ -14,7 +14,7 @@ from ldm_rl.agents import build_agent
 from ldm_rl.data.replay import FrameReplay
 from ldm_rl.models import DepthUNet
 from ldm_rl.models.compile import compile_inference
-from ldm_rl.runtime import seed_everything
+from ldm_rl.torch_utils import seed_everything
 
 ROOT = Path(__file__).resolve().parents[1]
 

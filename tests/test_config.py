@@ -239,7 +239,7 @@ def test_compile_without_a_cxx_compiler_stops_in_one_line(tmp_path):
 
 
 def test_evaluate_refuses_a_dynamics_checkpoint_in_one_line(tmp_path):
-    from ldm_rl.checkpoint import save_checkpoint
+    from ldm_rl.run.checkpoint import save_checkpoint
 
     dynamics = save_checkpoint(tmp_path / "ldm" / "checkpoint.pt", {"model": {}}, meta={"kind": "dynamics"})
     work = tmp_path / "work"
@@ -267,7 +267,7 @@ def test_the_preflight_object_counts_are_the_envs_own():
 def test_the_command_line_check_imports_no_torch():
     code = (
         "import sys\n"
-        "from ldm_rl.config_schema import check_command_line\n"
+        "from ldm_rl.run.cli import check_command_line\n"
         f"argv = [{str(ROOT / 'recipes' / 'train_dynamics.py')!r}, 'dynamics.lr=-1']\n"
         "try:\n    check_command_line(argv[0], argv=argv, checkpoint_name='checkpoint.pt')\n"
         "except SystemExit as stop:\n    assert stop.code == 2\n"

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ldm_rl.checkpoint import load_checkpoint
-from ldm_rl.runtime import read_scalars
+from ldm_rl.run.checkpoint import load_checkpoint
+from ldm_rl.run.outputs import read_scalars
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "train_dynamics.py"

@@ -86,7 +86,7 @@ def test_train_dynamics_recipe_smoke(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     for name in ("checkpoint.pt", "predictions.png", "final_metrics.json", "sr_vs_iteration.png", "config_resolved.yaml"):
         assert (run_dir / name).is_file(), name
-    from ldm_rl.runtime import read_scalars
+    from ldm_rl.run.outputs import read_scalars
 
     scalars = read_scalars(run_dir)  # the CSV logger (logger=csv, the default) is the one record of each scalar
     assert [step for step, _ in scalars["dynamics/sr"]] == [2, 4] and len(scalars["dynamics/iterations_per_s"]) == 2
@@ -111,7 +111,7 @@ def test_train_dynamics_recipe_smoke(tmp_path):
     assert checkpoint.meta["config"]["model"]["width"] == 0.125 and model.frame_size == 64
     assert {"model", "loss", "optimizer", "scheduler", "rng", "rows", "running", "iteration"} <= checkpoint.state.keys()
     assert checkpoint.state["rows"][-1]["sr"] == summary["sr"]
-    groups = checkpoint.state["optimizer"]["param_groups"]  # Adam with its fused kernel (ldm_rl.runtime.make_adam)
+    groups = checkpoint.state["optimizer"]["param_groups"]  # Adam with its fused kernel (ldm_rl.torch_utils.make_adam)
     assert groups and all(group["fused"] is True for group in groups)
 
 
@@ -162,7 +162,7 @@ def test_a_stopped_dynamics_run_resumes_to_the_uninterrupted_weights(tmp_path):
     import signal
     import time
 
-    from ldm_rl.checkpoint import CheckpointError, load_checkpoint
+    from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint
     from ldm_rl.world_model.factory import load_dynamics_checkpoint
 
     full = subprocess.run(_dynamics_command(tmp_path / "full"), capture_output=True, text=True, cwd=tmp_path, timeout=600)

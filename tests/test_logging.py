@@ -1,4 +1,4 @@
-"""Loggers (TorchRL's get_logger behind ``ldm_rl.runtime.make_logger``) and progress reporting.
+"""Loggers (TorchRL's get_logger behind ``ldm_rl.run.outputs.make_logger``) and progress reporting.
 
 Each backend writes the scalars it is given where docs/logging.md says; tensorboard / wandb / mlflow
 are skipped when their package is not installed. A recipe's log file holding the console's lines is
@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from ldm_rl import runtime
-from ldm_rl.progress import LOGGER_NAME, progress_bar, progress_mode
+from ldm_rl.run import outputs
+from ldm_rl.run.progress import LOGGER_NAME, progress_bar, progress_mode
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = {"env": {"id": "ldm_rl/BlockStacking-v0", "num_objects": 3}, "seed": 0, "model": {"crop_size": 64, "width": None}}
@@ -30,29 +30,29 @@ def _log_two_evaluations(logger) -> None:
 
 
 def test_csv_backend_writes_one_file_per_scalar_and_read_scalars_keeps_the_last_value(tmp_path):
-    logger = runtime.make_logger({"backend": "csv", "exp_name": "train_dynamics"}, tmp_path, config=CONFIG)
+    logger = outputs.make_logger({"backend": "csv", "exp_name": "train_dynamics"}, tmp_path, config=CONFIG)
     _log_two_evaluations(logger)
     logger.log_scalar("dynamics/sr", 0.75, step=100)  # a resumed run redoing step 100
-    runtime.close_logger(logger)
+    outputs.close_logger(logger)
     assert (tmp_path / "train_dynamics" / "scalars" / "dynamics" / "sr.csv").read_text() == "50,0.25\n100,0.5\n100,0.75\n"
-    scalars = runtime.read_scalars(tmp_path)
+    scalars = outputs.read_scalars(tmp_path)
     assert scalars == {"dynamics/l1_mm": [(50, 3.5), (100, 2.0)], "dynamics/sr": [(50, 0.25), (100, 0.75)]}
-    assert runtime.read_scalars(tmp_path / "train_dynamics" / "scalars") == scalars
+    assert outputs.read_scalars(tmp_path / "train_dynamics" / "scalars") == scalars
     if importlib.util.find_spec("torchcodec") is None:
         assert logger.experiment.video_format == "pt"  # get_logger's mp4 needs torchcodec
     with pytest.raises(FileNotFoundError, match="logger=csv"):
-        runtime.read_scalars(tmp_path / "train_dynamics" / "videos")
+        outputs.read_scalars(tmp_path / "train_dynamics" / "videos")
 
 
 def test_none_unknown_backend_and_missing_package(tmp_path, monkeypatch):
-    assert runtime.make_logger({"backend": "none", "exp_name": "x"}, tmp_path) is None
-    runtime.close_logger(None)
+    assert outputs.make_logger({"backend": "none", "exp_name": "x"}, tmp_path) is None
+    outputs.close_logger(None)
     with pytest.raises(ValueError, match=r"logger.backend must be one of csv, tensorboard, wandb, mlflow, none; got 'neptune'"):
-        runtime.make_logger({"backend": "neptune"}, tmp_path)
+        outputs.make_logger({"backend": "neptune"}, tmp_path)
     for backend in ("tensorboard", "wandb", "mlflow"):
         monkeypatch.setitem(sys.modules, backend, None)  # as if not installed
-        with pytest.raises(runtime.MissingExtraError) as err:
-            runtime.make_logger({"backend": backend, "exp_name": "x"}, tmp_path)
+        with pytest.raises(outputs.MissingExtraError) as err:
+            outputs.make_logger({"backend": backend, "exp_name": "x"}, tmp_path)
         message = str(err.value)
         assert "\n" not in message and f"logger={backend} needs the '{backend}' package" in message
         assert f"pip install 'ldm_rl[{backend}]'" in message
@@ -72,9 +72,9 @@ def test_tensorboard_backend_writes_events(tmp_path):
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    logger = runtime.make_logger({"backend": "tensorboard", "exp_name": "train_dynamics"}, tmp_path, config=CONFIG)
+    logger = outputs.make_logger({"backend": "tensorboard", "exp_name": "train_dynamics"}, tmp_path, config=CONFIG)
     _log_two_evaluations(logger)
-    runtime.close_logger(logger)
+    outputs.close_logger(logger)
     events = EventAccumulator(str(tmp_path / "train_dynamics"))
     events.Reload()
     assert [(e.step, e.value) for e in events.Scalars("dynamics/sr")] == [(50, 0.25), (100, 0.5)]
@@ -86,18 +86,18 @@ def test_wandb_offline_needs_no_account(tmp_path, monkeypatch):
         monkeypatch.delenv(name, raising=False)
     monkeypatch.setenv("WANDB_CONFIG_DIR", str(tmp_path / "wandb_config"))  # no ~/.config/wandb, no netrc login
     monkeypatch.setenv("WANDB_SILENT", "true")
-    logger = runtime.make_logger({"backend": "wandb", "exp_name": "train_dynamics", "mode": "offline", "project": "tests"},
+    logger = outputs.make_logger({"backend": "wandb", "exp_name": "train_dynamics", "mode": "offline", "project": "tests"},
                                  tmp_path / "run", config=CONFIG)
     _log_two_evaluations(logger)
     run = logger.experiment
     assert run.settings.mode == "offline" and run.config["env.id"] == "ldm_rl/BlockStacking-v0"
     assert run.summary["dynamics/sr"] == 0.5 and run.summary["dynamics/l1_mm"] == 2.0
-    runtime.close_logger(logger)
+    outputs.close_logger(logger)
     # the offline record that `wandb sync` uploads later (its encoding is wandb's: checked above through the run)
     (record,) = (tmp_path / "run" / "wandb").glob("offline-run-*/run-*.wandb")
     assert record.stat().st_size > 0
     with pytest.raises(ValueError, match="logger.mode must be one of online, offline, disabled"):
-        runtime.make_logger({"backend": "wandb", "mode": "sometimes"}, tmp_path / "other")
+        outputs.make_logger({"backend": "wandb", "mode": "sometimes"}, tmp_path / "other")
 
 
 def test_mlflow_backend_records_metrics_and_the_config(tmp_path):
@@ -105,10 +105,10 @@ def test_mlflow_backend_records_metrics_and_the_config(tmp_path):
     from mlflow.tracking import MlflowClient
 
     store = tmp_path / "mlruns"
-    logger = runtime.make_logger({"backend": "mlflow", "exp_name": "train_dynamics", "tracking_uri": str(store)},
+    logger = outputs.make_logger({"backend": "mlflow", "exp_name": "train_dynamics", "tracking_uri": str(store)},
                                  tmp_path / "run", config=CONFIG)
     _log_two_evaluations(logger)
-    runtime.close_logger(logger)
+    outputs.close_logger(logger)
     client = MlflowClient(store.as_uri())
     (run,) = client.search_runs([client.get_experiment_by_name("train_dynamics").experiment_id])
     assert [(m.step, m.value) for m in client.get_metric_history(run.info.run_id, "dynamics/sr")] == [(50, 0.25), (100, 0.5)]

@@ -101,7 +101,7 @@ def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path)
 
     import torch
 
-    from ldm_rl.checkpoint import load_checkpoint
+    from ldm_rl.run.checkpoint import load_checkpoint
 
     out, _ = smoke_run
     run_dir = tmp_path / "run"

@@ -34,7 +34,7 @@ def test_main_command_runs_and_writes_what_the_readme_promises(tmp_path):
     import subprocess
     import sys
 
-    from ldm_rl.checkpoint import load_checkpoint
+    from ldm_rl.run.checkpoint import load_checkpoint
 
     main_command = setup_commands()[0]
     job = main_command.rsplit("&& ", 1)[1].split()

@@ -1,4 +1,4 @@
-"""``python recipes/<name>.py --help`` (ldm_rl.recipe_help): what the recipe does and writes first, then only
+"""``python recipes/<name>.py --help`` (ldm_rl.run.help): what the recipe does and writes first, then only
 the config groups it reads, then its primary config's keys with their comments; exit code 0."""
 
 import os
@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from ldm_rl.recipe_help import READS, recipe_help
+from ldm_rl.run.help import READS, recipe_help
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"

@@ -109,7 +109,7 @@ def test_three_seed_sweep_aggregates_to_mean_and_std_over_seeds(basic_sweep, tmp
     assert "without final_metrics.json" not in md
 
     # the curve: held-out SR per evaluation (iteration 2), mean over the three runs' logged scalars
-    from ldm_rl.runtime import read_scalars
+    from ldm_rl.run.outputs import read_scalars
 
     assert (out / "sweep_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with open(out / "sweep_curve.csv", newline="") as f:

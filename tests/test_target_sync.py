@@ -8,7 +8,7 @@ from torchrl.objectives import HardUpdate
 
 from ldm_rl.agents.base import is_target_entry
 from ldm_rl.objectives import LookaheadLoss, TargetSync
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 from policy_helpers import tiny_networks, transitions
 from test_baselines import batch, make_agent
 

@@ -196,7 +196,7 @@ def load_agent(path, *, preset: str | None = None, device="cpu"):
 
     ``preset``: when given, the checkpoint must hold that preset (one clear error otherwise).
     """
-    from ldm_rl.checkpoint import load_checkpoint
+    from ldm_rl.run.checkpoint import load_checkpoint
 
     expect = {"kind": "agent", **({"preset": preset} if preset is not None else {})}
     checkpoint = load_checkpoint(path, expect=expect, map_location=device)

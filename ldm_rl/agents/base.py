@@ -17,7 +17,7 @@ from torchrl.objectives import LossModule
 
 from ldm_rl.objectives.target_sync import TargetSync
 from ldm_rl.planning.policy import StatePolicy
-from ldm_rl.runtime import make_adam
+from ldm_rl.torch_utils import make_adam
 
 __all__ = ["Agent", "TargetNetworkAgent", "is_target_entry"]
 

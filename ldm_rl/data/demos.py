@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from ldm_rl.runtime import atomic_path
+from ldm_rl.run.outputs import atomic_path
 
 __all__ = ["collect_demos", "save_demos", "load_demos", "episodes_to_tensordict", "DemoDataError", "FORMAT_VERSION"]
 
@@ -109,7 +109,7 @@ def collect_demos(
         procedure: ``"direct"`` (the direct planner) or ``"deconstruct"`` (build, deconstruct, replay
             reversed; block stacking and house building only; failed deconstructions are skipped).
         noise: ``{"position": metres, "random_action_prob": p}`` (default: noiseless).
-        progress: show progress (``ldm_rl.progress``: a bar with ETA on a terminal, else periodic log lines).
+        progress: show progress (``ldm_rl.run.progress``: a bar with ETA on a terminal, else periodic log lines).
 
     The metadata's ``num_episodes`` / ``success_rate`` describe the episodes collected (before a
     ``num_steps`` cut); ``success_rate`` counts episodes ending terminated with a positive reward.
@@ -129,7 +129,7 @@ def collect_demos(
     run = run_expert_episode if procedure == "direct" else run_deconstruct_episode
     rng = np.random.default_rng(seed)
     episodes, steps = [], 0
-    from ldm_rl.progress import progress_bar
+    from ldm_rl.run.progress import progress_bar
 
     bar = progress_bar(total=budget, unit="step" if num_steps else "episode", enabled=progress, desc=f"demos {env_id}")
     try:

@@ -61,7 +61,7 @@ from ldm_rl.keys import (
     TERMINATED,
     TRUNCATED,
 )
-from ldm_rl.runtime import atomic_path
+from ldm_rl.run.outputs import atomic_path
 
 __all__ = [
     "TensorSumTree",

@@ -16,7 +16,7 @@ from torch import nn
 
 from ldm_rl import keys
 from ldm_rl.objectives.transition_loss import TransitionLoss
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["SpatialDQNLoss"]
 

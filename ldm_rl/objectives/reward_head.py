@@ -12,7 +12,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from ldm_rl import keys
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["predicted_next_state", "reward_head_loss"]
 

@@ -42,7 +42,7 @@ from ldm_rl.objectives.reward_head import predicted_next_state
 from ldm_rl.objectives.transition_loss import TransitionKeys, TransitionLoss
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS"]
 

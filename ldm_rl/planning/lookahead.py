@@ -14,7 +14,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["LookaheadResult", "lookahead", "shooting_scores"]
 

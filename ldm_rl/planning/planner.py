@@ -27,7 +27,7 @@ from ldm_rl import geometry, keys
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.policy import ScheduleLike, StatePolicy
 from ldm_rl.planning.sampling import sample_candidates
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["LookaheadPlanner"]
 

@@ -14,7 +14,7 @@ from ldm_rl import keys
 from ldm_rl.geometry import action_to_flat, flat_to_action
 from ldm_rl.planning.policy import ScheduleLike, StatePolicy
 from ldm_rl.planning.sampling import sample_candidates
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["QMapPolicy"]
 

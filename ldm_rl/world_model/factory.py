@@ -143,12 +143,12 @@ def load_dynamics_checkpoint(path, expect: Mapping[str, Any] | None = None, *, m
     """Rebuild the dynamics model saved by ``recipes/train_dynamics.py``; returns ``(model, checkpoint)``.
 
     ``path``: a ``checkpoint.pt`` or the run folder holding it. The file is verified by
-    :func:`ldm_rl.checkpoint.load_checkpoint` (checksum, format version, ``kind == "dynamics"`` and every
+    :func:`ldm_rl.run.checkpoint.load_checkpoint` (checksum, format version, ``kind == "dynamics"`` and every
     ``expect`` key, e.g. ``{"preset": "lite", "task": "ldm_rl/BlockStacking-v0"}``); the model is built
     from the config stored in it (``config.model``, ``config.env.max_height``), given its weights, moved
     to ``map_location`` and returned in eval mode. Every problem is one ``CheckpointError``.
     """
-    from ldm_rl.checkpoint import CheckpointError, load_checkpoint
+    from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint
 
     checkpoint = load_checkpoint(path, expect={"kind": "dynamics", **dict(expect or {})}, map_location=map_location)
     cfg = checkpoint.meta.get("config") or {}

@@ -11,7 +11,7 @@ from torchrl.data import Binary, Composite, MultiCategorical, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from ldm_rl.keys import DONE, HEIGHTMAP, HOLDING, IN_HAND, REWARD, TERMINATED, require_keys
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 from ldm_rl.world_model.core import HAND_SIZE, HEIGHTMAP_SIZE, DynamicsModel
 from ldm_rl.world_model.modules import ROOT_KEYS, STATE_KEYS, make_dynamics_module
 

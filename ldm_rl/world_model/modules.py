@@ -9,7 +9,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from ldm_rl.keys import ACTION, FORESIGHT_KEYS, HEIGHTMAP, HOLDING, IN_HAND, NEXT_LOGITS, next_key
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 from ldm_rl.world_model.core import DynamicsModel
 
 __all__ = ["DynamicsPredictor", "make_dynamics_module", "STATE_KEYS", "PREDICTED_KEYS", "NEXT_KEYS", "FORESIGHT_KEYS",
@@ -30,7 +30,7 @@ class DynamicsPredictor(nn.Module):
     """``(heightmap, in_hand, holding, action) -> (heightmap', in_hand', holding'[, logits])``.
 
     Adapts :meth:`DynamicsModel.predict` to a tuple-returning module for ``TensorDictModule``. Every
-    prediction runs under ``ldm_rl.runtime.eval_mode(model)``: eval mode (BatchNorm uses and keeps its
+    prediction runs under ``ldm_rl.torch_utils.eval_mode(model)``: eval mode (BatchNorm uses and keeps its
     running statistics) without gradients, and each submodule gets its train/eval flag back afterwards.
     """
 

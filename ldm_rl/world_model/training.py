@@ -195,7 +195,7 @@ def write_curve(rows: list[dict], path: Path) -> None:
     """``curve.csv``: one line per evaluation (:data:`CURVE_FIELDS`; SR as fractions, L1 in mm), rewritten atomically."""
     import csv
 
-    from ldm_rl.runtime import atomic_path
+    from ldm_rl.run.outputs import atomic_path
 
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=CURVE_FIELDS, extrasaction="ignore")

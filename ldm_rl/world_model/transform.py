@@ -5,7 +5,7 @@ the step's ``next`` data, i.e. the rollout holds ``("next", "pred_heightmap")`` 
 ``("next", "heightmap")``; after ``step_mdp`` they also appear at the root, so ``reset`` writes zeros
 ("no prediction yet") under the same keys. On a replay buffer (``rb.append_transform(...)``) every
 sampled transition gets the same ``("next", pred_*)`` entries. Predictions run under
-``ldm_rl.runtime.eval_mode(model)`` (eval mode, no gradient; the model's train/eval flags are given back
+``ldm_rl.torch_utils.eval_mode(model)`` (eval mode, no gradient; the model's train/eval flags are given back
 afterwards, so foresight during training leaves the BatchNorm running statistics untouched), and
 the ``eval()`` TorchRL applies to a transform when it joins an env or a replay buffer does not reach the
 model (see :meth:`ForesightTransform.train`).
@@ -22,7 +22,7 @@ from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from ldm_rl.keys import NEXT, PRED_KEYS, require_keys
-from ldm_rl.runtime import eval_mode
+from ldm_rl.torch_utils import eval_mode
 from ldm_rl.world_model.core import DynamicsModel
 from ldm_rl.world_model.modules import STATE_KEYS
 

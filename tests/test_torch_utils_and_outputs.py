@@ -7,13 +7,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from ldm_rl import runtime
+from ldm_rl import torch_utils
+from ldm_rl.run import outputs
 
 
 def test_atomic_path_leaves_nothing_behind_on_failure(tmp_path):
     target = tmp_path / "ckpt.pt"
     with pytest.raises(RuntimeError, match="boom"):
-        with runtime.atomic_path(target) as tmp:
+        with outputs.atomic_path(target) as tmp:
             tmp.write_bytes(b"half")
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
@@ -21,8 +22,8 @@ def test_atomic_path_leaves_nothing_behind_on_failure(tmp_path):
 
 def test_atomic_torch_save_replaces_whole_files(tmp_path):
     target = tmp_path / "sub" / "ckpt.pt"
-    runtime.atomic_torch_save({"a": torch.ones(2)}, target)
-    runtime.atomic_torch_save({"a": torch.zeros(3)}, target)
+    outputs.atomic_torch_save({"a": torch.ones(2)}, target)
+    outputs.atomic_torch_save({"a": torch.zeros(3)}, target)
     assert torch.equal(torch.load(target)["a"], torch.zeros(3))
     assert sorted(p.name for p in target.parent.iterdir()) == ["ckpt.pt"]
 
@@ -30,7 +31,7 @@ def test_atomic_torch_save_replaces_whole_files(tmp_path):
 def test_atomic_path_replaces_directories(tmp_path):
     target = tmp_path / "demos"
     for payload in ("old", "new"):
-        with runtime.atomic_path(target) as tmp:
+        with outputs.atomic_path(target) as tmp:
             tmp.mkdir()
             (tmp / "x.txt").write_text(payload)
     assert (target / "x.txt").read_text() == "new"
@@ -38,40 +39,40 @@ def test_atomic_path_replaces_directories(tmp_path):
 
 
 def test_resolve_device():
-    assert runtime.resolve_device("cpu") == torch.device("cpu")
-    assert runtime.resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert torch_utils.resolve_device("cpu") == torch.device("cpu")
+    assert torch_utils.resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     with pytest.raises(ValueError, match="device must be"):
-        runtime.resolve_device("gpu0")
+        torch_utils.resolve_device("gpu0")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="CUDA"):
-            runtime.resolve_device("cuda")
+            torch_utils.resolve_device("cuda")
 
 
 def test_seed_everything_is_reproducible_and_validated():
-    runtime.seed_everything(7)
+    torch_utils.seed_everything(7)
     a = torch.rand(3)
-    gen = runtime.seed_everything(7)
+    gen = torch_utils.seed_everything(7)
     assert torch.equal(a, torch.rand(3))
     assert torch.equal(torch.rand(2, generator=gen), torch.rand(2, generator=torch.Generator().manual_seed(7)))
     with pytest.raises(ValueError, match="seed"):
-        runtime.seed_everything(-1)
+        torch_utils.seed_everything(-1)
     with pytest.raises(ValueError, match="threads"):
-        runtime.set_threads(0)
+        torch_utils.set_threads(0)
 
 
 def test_csv_logger_writes_scalars(tmp_path):
-    logger = runtime.make_logger({"backend": "csv", "exp_name": "run"}, tmp_path)
+    logger = outputs.make_logger({"backend": "csv", "exp_name": "run"}, tmp_path)
     logger.log_scalar("l1_mm", 1.5, step=3)
     files = list(tmp_path.rglob("l1_mm.csv"))
     assert len(files) == 1 and "1.5" in files[0].read_text()
-    assert runtime.make_logger({"backend": "none"}, tmp_path) is None
+    assert outputs.make_logger({"backend": "none"}, tmp_path) is None
     with pytest.raises(ValueError, match="logger.backend"):
-        runtime.make_logger({"backend": "wandb2"}, tmp_path)
+        outputs.make_logger({"backend": "wandb2"}, tmp_path)
 
 
 def test_importing_ldm_rl_stays_light():
     code = (
-        "import sys, ldm_rl, ldm_rl.geometry, ldm_rl.runtime; "
+        "import sys, ldm_rl, ldm_rl.geometry, ldm_rl.torch_utils, ldm_rl.run.outputs; "
         "heavy = [m for m in ('torchrl', 'pybullet', 'tensordict', 'hydra', 'cv2') if m in sys.modules]; "
         "assert not heavy, heavy"
     )
@@ -86,7 +87,7 @@ def test_make_adam_is_fused_adam_with_the_same_update_rule_and_every_agent_uses_
     torch.manual_seed(0)
     params = [torch.randn(5, 3, requires_grad=True), torch.randn(7, requires_grad=True)]
     twins = [p.detach().clone().requires_grad_(True) for p in params]
-    fused = runtime.make_adam(params, lr=1e-2, weight_decay=1e-3)
+    fused = torch_utils.make_adam(params, lr=1e-2, weight_decay=1e-3)
     plain = torch.optim.Adam(twins, lr=1e-2, weight_decay=1e-3)
     assert fused.defaults["fused"] is True and fused.defaults["lr"] == 1e-2
     for step in range(3):
@@ -98,7 +99,7 @@ def test_make_adam_is_fused_adam_with_the_same_update_rule_and_every_agent_uses_
     for a, b in zip(params, twins):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)  # the same rule; only the last bits may differ
     with pytest.raises(ValueError, match="learning rate"):
-        runtime.make_adam(params, lr=-1.0)
+        torch_utils.make_adam(params, lr=-1.0)
     conf = str(Path(__file__).resolve().parents[1] / "conf")
     for name in ("ldm", "fcdqn", "rs", "dynaq"):
         with initialize_config_dir(version_base="1.3", config_dir=conf):

@@ -1,6 +1,6 @@
 """``python recipes/<name>.py --help``: what the recipe does and writes, the config groups it reads, every key.
 
-:func:`ldm_rl.config_schema.check_command_line` calls :func:`print_recipe_help` when ``--help`` is given
+:func:`ldm_rl.run.cli.check_command_line` calls :func:`print_recipe_help` when ``--help`` is given
 (``--hydra-help``, ``--info`` and ``--cfg`` still go to Hydra). The text comes from the config files, so each
 thing is written in one place:
 

@@ -3,7 +3,7 @@
 * stderr is a terminal: a tqdm bar with rate and ETA. While it is shown, console logging is routed
   through ``tqdm.write`` so log lines print above the bar instead of breaking it (log files unaffected).
 * stderr is not a terminal (a pipe, a file, a cluster job): no carriage returns. Plain lines go through
-  ``logging`` (logger ``ldm_rl.progress``, level INFO), so they land on the console *and* in the Hydra
+  ``logging`` (logger ``ldm_rl.run.progress``, level INFO), so they land on the console *and* in the Hydra
   run's ``<job>.log``::
 
       train LDM(64): 150/300 it (50%) [elapsed 02:31, ETA 02:31, 0.99 it/s, loss=0.412]
@@ -15,7 +15,7 @@
 
 Use it like ``tqdm``::
 
-    from ldm_rl.progress import progress_bar
+    from ldm_rl.run.progress import progress_bar
 
     for episode in progress_bar(range(100), desc="evaluate", unit="episode"):
         ...
@@ -38,7 +38,7 @@ from tqdm.std import tqdm
 
 __all__ = ["progress_bar", "progress_mode", "LOGGER_NAME"]
 
-LOGGER_NAME = "ldm_rl.progress"
+LOGGER_NAME = "ldm_rl.run.progress"
 _MODES = ("bar", "lines", "off")
 _SECONDS_PER_UNIT = {"s": 1.0, "min": 60.0, "h": 3600.0}  # bars whose total is a time budget
 

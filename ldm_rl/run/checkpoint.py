@@ -16,15 +16,13 @@ so ``save_checkpoint`` turns numpy scalars into Python numbers and refuses what 
 Pieces: :func:`save_checkpoint` (atomic: temporary + fsync + rename + fsync of the folder),
 :func:`load_checkpoint` (verifies everything, checks ``expect``), :func:`read_checkpoint_meta`
 (meta only, no torch), :func:`capture_rng_state` / :func:`restore_rng_state` (python, numpy, torch,
-CUDA and named generators), :func:`clean_stale_temporaries` (what a kill during a save leaves behind),
-:class:`StopSignals` (SIGINT/SIGTERM set a flag; the loop saves and stops) and :class:`RunStopped`.
+CUDA and named generators), :func:`clean_stale_temporaries` (what a kill during a save leaves behind). Stopping cleanly on a signal: :mod:`ldm_rl.run.signals`.
 
 Nothing here imports torch at module import time.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import io
 import json
@@ -32,10 +30,7 @@ import os
 import random
 import re
 import shutil
-import signal
-import sys
 import tempfile
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -54,15 +49,13 @@ __all__ = [
     "capture_rng_state",
     "restore_rng_state",
     "clean_stale_temporaries",
-    "StopSignals",
-    "RunStopped",
 ]
 
 FORMAT_VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
 MAGIC = b"ldm_rl checkpoint\n"
 _MAX_HEADER = 4096
-# tempfile's random names: 8 characters of [a-z0-9_]; runtime.atomic_path and save_checkpoint both
+# tempfile's random names: 8 characters of [a-z0-9_]; outputs.atomic_path and save_checkpoint both
 # name their temporaries ".<target>.<random>.tmp" next to the target
 _TEMPORARY = re.compile(r"^\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp$")
 
@@ -414,7 +407,7 @@ def restore_rng_state(state: Mapping[str, Any], generators: Mapping[str, Any] | 
 def clean_stale_temporaries(directory: str | os.PathLike) -> list[Path]:
     """Remove what a kill during a save left in ``directory`` (not recursive); return the removed paths.
 
-    Removes ``.NAME.<random>.tmp`` files and folders (``save_checkpoint`` and ``runtime.atomic_path``
+    Removes ``.NAME.<random>.tmp`` files and folders (``save_checkpoint`` and ``outputs.atomic_path``
     temporaries) and ``.NAME.old`` folders of ``atomic_path`` whose ``NAME`` exists; a ``.NAME.old``
     whose ``NAME`` is missing (a kill between the two renames of a folder replacement) is moved back
     to ``NAME``. Call it at the start of a run, on a folder no other process is writing to.
@@ -442,95 +435,3 @@ def clean_stale_temporaries(directory: str | os.PathLike) -> list[Path]:
             target.unlink(missing_ok=True)
         removed.append(target)
     return removed
-
-
-# ---------------------------------------------------------------------------------- stop signals
-
-
-class RunStopped(Exception):
-    """Raised by a training loop after it saved a checkpoint on SIGINT/SIGTERM.
-
-    ``str()`` is the one line to show, e.g. ``stopped by SIGTERM at iteration 30/400; checkpoint saved
-    to outputs/.../checkpoint.pt`` (``position`` replaces ``iteration 30/400`` where another unit bounds the
-    run, e.g. ``episode 24, 12.3 of 36.0 min``); ``exit_code`` is the shell's 128 + signal number.
-    """
-
-    def __init__(self, signal_name: str, iteration: int, total: int, checkpoint: str | os.PathLike, *,
-                 unit: str = "iteration", position: str | None = None) -> None:
-        self.signal_name, self.iteration, self.total, self.checkpoint = signal_name, iteration, total, Path(checkpoint)
-        where = position if position is not None else f"{unit} {iteration}/{total}"
-        super().__init__(f"stopped by {signal_name} at {where}; checkpoint saved to {self.checkpoint}")
-
-    @property
-    def exit_code(self) -> int:
-        return 128 + int(getattr(signal.Signals, self.signal_name, signal.SIGTERM))
-
-
-class StopSignals:
-    """While active, SIGINT / SIGTERM ask the loop to stop instead of killing the process.
-
-    ``with StopSignals("the end of this episode") as stop: ... if stop.requested: with stop.saving(): save;
-    raise RunStopped(stop.signal_name, ...)``. The first signal sets ``requested`` and ``signal_name`` and
-    says on stderr what the loop finishes first (``waiting_for``); a second one aborts at once (one line on
-    stderr, exit code 128 + signal number) without a new checkpoint — the last one on disk stays whole: a
-    second signal that arrives inside ``saving()`` aborts only once that save is complete. The previous
-    handlers come back on exit. Signals the process ignores (SIGINT of a background job) stay ignored;
-    outside the main thread (where Python cannot install handlers) it does nothing.
-    """
-
-    def __init__(self, waiting_for: str = "the current step",
-                 signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
-        self.waiting_for = str(waiting_for)
-        self.signals = tuple(signals)
-        self.requested = False
-        self.signal_name: str | None = None
-        self._previous: dict[int, Any] = {}
-        self._saving = False
-        self._abort_after_save: int | None = None
-
-    def __enter__(self) -> "StopSignals":
-        if threading.current_thread() is threading.main_thread():
-            for signum in self.signals:
-                previous = signal.getsignal(signum)
-                if previous is signal.SIG_IGN:  # e.g. SIGINT of a background job: stays ignored
-                    continue
-                self._previous[signum] = previous
-                signal.signal(signum, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame) -> None:
-        name = signal.Signals(signum).name
-        if self.requested:
-            if self._saving:  # never abort half-way through a checkpoint
-                self._abort_after_save = signum
-                print(f"second {name}: aborting once the checkpoint being written is complete", file=sys.stderr, flush=True)
-                return
-            self._abort(signum)
-        self.requested, self.signal_name = True, name
-        print(f"{name}: stopping after {self.waiting_for}, then saving a checkpoint; "
-              f"{name} again aborts at once (the last checkpoint on disk is kept)", file=sys.stderr, flush=True)
-
-    def _abort(self, signum: int) -> None:
-        self._restore()
-        print(f"second {signal.Signals(signum).name}: aborted without a new checkpoint", file=sys.stderr, flush=True)
-        raise SystemExit(128 + signum)
-
-    @contextlib.contextmanager
-    def saving(self):
-        """A block a second signal does not interrupt (a checkpoint being written); it aborts right after."""
-        self._saving = True
-        try:
-            yield
-        finally:
-            self._saving = False
-            pending, self._abort_after_save = self._abort_after_save, None
-            if pending is not None:
-                self._abort(pending)
-
-    def _restore(self) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
-        self._previous.clear()
-
-    def __exit__(self, *exc) -> None:
-        self._restore()
