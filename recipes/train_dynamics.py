@@ -9,7 +9,7 @@
 Writes to the Hydra run directory: the logger's scalars (``logger=csv`` default: train_dynamics/scalars/dynamics/*.csv,
 one per metric, read with ``ldm_rl.run.outputs.read_scalars``; tensorboard | wandb | mlflow | none, docs/logging.md),
 checkpoint.pt (every dynamics.checkpoint_every iterations, at the end, and on SIGINT/SIGTERM), final_metrics.json,
-curve.csv (one line per evaluation: SR overall / picks / places, L1, the floors; recipes/plot_sample_efficiency.py),
+curve.csv (one line per evaluation: SR overall / picks / places, L1, the floors; ldm_rl/reports/plot_sample_efficiency.py),
 sr_vs_iteration.png, predictions.png (before | predicted | true | |error|), config_resolved.yaml and train_dynamics.log
 (what the console showed). Progress: a bar with ETA on a terminal, else a plain line every 10 % or 30 s.
 

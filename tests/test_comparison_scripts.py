@@ -1,10 +1,10 @@
-"""The paper's comparison: the curves_* / generalization_* presets, recipes/plot_learning_curves.py on a real
-multirun (and on written curves with known numbers), recipes/generalization_table.py on a smoke checkpoint."""
+"""The paper's comparison: the curves_* / generalization_* presets, ldm_rl/reports/plot_learning_curves.py on a real
+multirun (and on written curves with known numbers), ldm_rl/reports/generalization_table.py on a smoke checkpoint."""
 
 from __future__ import annotations
 
 import csv
-import importlib.util
+import importlib
 import json
 import math
 import os
@@ -29,12 +29,8 @@ TASKS = ("block_stacking", "house_building", "bottle_arrangement", "bin_packing"
 
 
 def script(name: str):
-    """A recipes/ script as a module (they are plain files, not a package)."""
-    spec = importlib.util.spec_from_file_location(name, ROOT / "recipes" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # (dataclasses look their module up there)
-    spec.loader.exec_module(module)
-    return module
+    """A report tool of ldm_rl/reports/ as a module."""
+    return importlib.import_module(f"ldm_rl.reports.{name}")
 
 
 plot_learning_curves = script("plot_learning_curves")
@@ -176,7 +172,7 @@ def smoke_sweep(tmp_path_factory):
 
 @pytest.mark.slow
 def test_plot_learning_curves_aggregates_a_real_multirun(smoke_sweep, tmp_path):
-    done = subprocess.run([sys.executable, str(ROOT / "recipes" / "plot_learning_curves.py"), str(smoke_sweep)],
+    done = subprocess.run([sys.executable, "-m", "ldm_rl.reports.plot_learning_curves", str(smoke_sweep)],
                           capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=300)
     assert done.returncode == 0, done.stderr
     assert (smoke_sweep / "learning_curves.png").stat().st_size > 10_000

@@ -19,6 +19,7 @@ from ldm_rl import config_schema  # registers schema/config, as every recipe doe
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 RECIPES = sorted(p for p in (ROOT / "recipes").glob("*.py") if not p.name.startswith("_"))
+REPORTS = sorted(p.stem for p in (ROOT / "ldm_rl" / "reports").glob("*.py") if not p.name.startswith("_"))
 GROUPS = ("env", "model", "loss", "logger", "demos", "dynamics")
 
 
@@ -158,6 +159,20 @@ def test_every_documented_recipe_is_collected_here():
     assert documented and documented <= names, documented - names
     hydra_apps = {p.name for p in RECIPES if "@hydra.main" in p.read_text()}
     assert {"train_dynamics.py", "generate_demos.py"} <= hydra_apps
+
+
+def test_the_report_tools_the_docs_name_exist():
+    text = (ROOT / "README.md").read_text() + "".join(p.read_text() for p in (ROOT / "docs").glob("*.md"))
+    documented = set(re.findall(r"ldm_rl\.reports\.(\w+)", text))
+    assert len(REPORTS) == 5 and documented and documented <= set(REPORTS), documented - set(REPORTS)
+
+
+@pytest.mark.parametrize("name", REPORTS)
+def test_report_tools_run_as_modules_from_any_directory(name, tmp_path):
+    done = subprocess.run([sys.executable, "-m", f"ldm_rl.reports.{name}", "--help"], cwd=tmp_path, capture_output=True,
+                          text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith(f"usage: python -m ldm_rl.reports.{name}"), done.stdout[:200]
 
 
 @pytest.mark.parametrize("recipe", RECIPES, ids=lambda p: p.name)

@@ -43,7 +43,7 @@ def test_aggregate_table1_writes_mean_and_std(tmp_path):
             json.dumps({"task": "block_stacking", "model": "LDM(64)", "seed": seed, "sr": sr, "l1_mm": 2.0, "preset": "lite"})
         )
     out = tmp_path / "table.md"
-    subprocess.run([sys.executable, str(ROOT / "recipes" / "aggregate_table1.py"), str(tmp_path), "--out", str(out)], check=True,
+    subprocess.run([sys.executable, "-m", "ldm_rl.reports.aggregate_table1", str(tmp_path), "--out", str(out)], check=True,
                    capture_output=True)
     text = out.read_text()
     assert "| LDM(64) | 85.0 ± 7.1 (n=2) [83.4] |" in text
@@ -54,7 +54,7 @@ def test_documented_table1_is_rebuilt_from_the_kept_runs(tmp_path):
     """docs/results/table1/table1.md and the table in docs/dynamics.md come from the kept final_metrics.json files."""
     results = ROOT / "docs" / "results" / "table1"
     out = tmp_path / "table1.md"
-    subprocess.run([sys.executable, str(ROOT / "recipes" / "aggregate_table1.py"), str(results), "--out", str(out)], check=True,
+    subprocess.run([sys.executable, "-m", "ldm_rl.reports.aggregate_table1", str(results), "--out", str(out)], check=True,
                    capture_output=True)
     rebuilt = out.read_text()
     assert rebuilt == (results / "table1.md").read_text()

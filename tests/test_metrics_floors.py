@@ -170,7 +170,7 @@ def test_aggregate_table1_shows_floors_once_per_held_out_set_and_the_iou_columns
             _run_json(tmp_path, f"{model}-{seed}", model=model, seed=seed, sr=sr, floor_sr=floor, sr_place_iou50=0.9, **shared)
     _run_json(tmp_path, "old", model="LDM(128)", seed=0, sr=0.6)  # written before the floors existed
     out = tmp_path / "table.md"
-    subprocess.run([sys.executable, str(ROOT / "recipes" / "aggregate_table1.py"), str(tmp_path), "--out", str(out)], check=True,
+    subprocess.run([sys.executable, "-m", "ldm_rl.reports.aggregate_table1", str(tmp_path), "--out", str(out)], check=True,
                    capture_output=True)
     text = out.read_text()
     assert "| LDM(64) | 75.0 ± 7.1 (n=2) [83.4] |" in text

@@ -1,5 +1,5 @@
 """Seed sweeps: Hydra multiruns of a real recipe through the basic, joblib and submitit launchers, and
-recipes/aggregate_sweep.py on their folders (docs/scaling.md).
+ldm_rl/reports/aggregate_sweep.py on their folders (docs/scaling.md).
 
 The sweeps run recipes/train_dynamics.py, the cheapest recipe, with a tiny world model: 12 expert
 transitions, 2 gradient steps, one evaluation. Each launcher starts real processes (the basic one runs
@@ -10,7 +10,7 @@ jobs), so the file takes tens of seconds.
 from __future__ import annotations
 
 import csv
-import importlib.util
+import importlib
 import json
 import math
 import statistics
@@ -22,7 +22,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "train_dynamics.py"
-AGGREGATE = ROOT / "recipes" / "aggregate_sweep.py"
 TINY = ["dynamics.num_demo_steps=12", "dynamics.iterations=2", "dynamics.eval_every=2", "dynamics.batch_size=4",
         "dynamics.grid_samples=1", "model.width=0.125", "demos.progress=false", "dynamics.checkpoint_every=0",
         "threads=1", "device=cpu"]
@@ -57,13 +56,8 @@ def results(metrics: dict) -> dict:
 
 
 def aggregate_module():
-    """recipes/aggregate_sweep.py, imported (its ``main(argv)`` is the command line)."""
-    if "aggregate_sweep" not in sys.modules:
-        spec = importlib.util.spec_from_file_location("aggregate_sweep", AGGREGATE)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["aggregate_sweep"] = module  # its dataclasses look their module up there
-        spec.loader.exec_module(module)
-    return sys.modules["aggregate_sweep"]
+    """ldm_rl.reports.aggregate_sweep (its ``main(argv)`` is the command line)."""
+    return importlib.import_module("ldm_rl.reports.aggregate_sweep")
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +176,7 @@ def test_a_folder_that_is_not_a_sweep_is_one_clear_error(tmp_path, capsys, layou
 def test_aggregate_cli_exits_nonzero_with_one_line(tmp_path):
     import os
 
-    proc = subprocess.run([sys.executable, str(AGGREGATE), str(tmp_path)], capture_output=True, text=True, cwd=tmp_path,
+    proc = subprocess.run([sys.executable, "-m", "ldm_rl.reports.aggregate_sweep", str(tmp_path)], capture_output=True, text=True, cwd=tmp_path,
                           env={**os.environ, **ENV}, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.strip().splitlines() == [

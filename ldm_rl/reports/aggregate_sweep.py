@@ -1,6 +1,6 @@
 """Aggregate a Hydra sweep (``-m seed=0,1,2 ...``) into mean ± std tables and curves over seeds.
 
-    python recipes/aggregate_sweep.py multirun/2026-11-21/10-00-00 [--out DIR] [--metrics a,b] [--x episodes]
+    python -m ldm_rl.reports.aggregate_sweep multirun/2026-11-21/10-00-00 [--out DIR] [--metrics a,b] [--x episodes]
 
 Reads the sweep's job folders (``<sweep>/<n>/`` with Hydra's ``.hydra/overrides.yaml``), each run's
 ``final_metrics.json`` and its ``curve.csv``: greedy success rate per evaluation (``recipes/train_policy.py``)
@@ -31,8 +31,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.run.outputs import atomic_path, atomic_write_text  # noqa: E402
+from ldm_rl.run.outputs import atomic_path, atomic_write_text
 
 # overrides that tell replicates apart rather than name a variant
 REPLICATE_KEYS = ("seed", "resume")
@@ -338,7 +337,7 @@ def aggregate(sweep: Path, out_dir: Path | None = None, metrics: list[str] | Non
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.aggregate_sweep", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="Writes sweep_summary.md/.csv and sweep_curve.png/.csv (docs/scaling.md).")
     parser.add_argument("sweep", type=Path, help="a Hydra multirun folder: multirun/<date>/<time>")

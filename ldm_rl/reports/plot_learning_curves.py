@@ -1,6 +1,6 @@
 """Draw the paper's learning-curve figure from ``recipes/train_policy.py`` runs.
 
-    python recipes/plot_learning_curves.py multirun/<date>/<time> [more sweeps or run folders] [--out curves.png]
+    python -m ldm_rl.reports.plot_learning_curves multirun/<date>/<time> [more sweeps or run folders] [--out curves.png]
 
 Reads every run below the given folders (a run folder holds ``curve.csv`` and Hydra's ``.hydra/config.yaml``):
 one panel per task (env id and object count), one line per agent, the greedy success rate against training
@@ -21,13 +21,11 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-import sys
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.run.outputs import atomic_path  # noqa: E402
+from ldm_rl.run.outputs import atomic_path
 
 # panel order and names of the paper's tasks (env ids of conf/env/*.yaml)
 TASKS = {
@@ -215,7 +213,7 @@ def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.plot_learning_curves", description=__doc__.splitlines()[0])
     parser.add_argument("folders", nargs="+", type=Path, help="multirun sweep folder(s) or run folders of train_policy.py")
     parser.add_argument("--out", type=Path, default=None,
                         help="figure path (.png; the CSV goes beside it, .csv); default <first folder>/learning_curves.png")

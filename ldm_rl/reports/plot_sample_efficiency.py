@@ -1,6 +1,6 @@
 """Draw the paper's sample-efficiency figure of a dynamics task from ``recipes/train_dynamics.py`` runs.
 
-    python recipes/plot_sample_efficiency.py docs/results/table1 --task bin_packing --out docs/img/sample_efficiency.png
+    python -m ldm_rl.reports.plot_sample_efficiency docs/results/table1 --task bin_packing --out docs/img/sample_efficiency.png
 
 Reads every run folder at or below the given folders that holds ``final_metrics.json`` (task, model, seed)
 and ``curve.csv`` (one line per evaluation), keeps the runs of ``--task``, and draws two panels: place SR
@@ -18,12 +18,10 @@ import csv
 import json
 import math
 import statistics
-import sys
 from collections import defaultdict
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.run.outputs import atomic_path  # noqa: E402
+from ldm_rl.run.outputs import atomic_path
 
 MODELS = {"LDM(64)": "C0", "LDM(128)": "C1", "Naive": "C2"}
 PANELS = (("sr_place", "floor_sr_place", "Place actions"), ("sr", "floor_sr", "All actions"))
@@ -64,7 +62,7 @@ def aggregate(curves: list[dict[int, dict[str, float]]], metric: str) -> list[tu
 
 
 def main(argv: list[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.plot_sample_efficiency", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     parser.add_argument("folders", nargs="+", type=Path, help="run folders or folders holding them")
     parser.add_argument("--task", default="bin_packing", choices=sorted(TASK_NAMES))

@@ -1,6 +1,6 @@
 """Aggregate Table-1 runs (``recipes/train_dynamics.py -m ...``) into markdown tables, with the floors.
 
-    python recipes/aggregate_table1.py multirun/2026-11-21/10-00-00 [more folders] [--out table1.md]
+    python -m ldm_rl.reports.aggregate_table1 multirun/2026-11-21/10-00-00 [more folders] [--out table1.md]
 
 Reads every ``final_metrics.json`` below the given folders (one per run: task, model, seed and the
 metrics of ``ldm_rl.world_model.training.evaluate``) and writes, without re-running anything:
@@ -23,12 +23,10 @@ import argparse
 import json
 import math
 import statistics
-import sys
 from collections import defaultdict
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ldm_rl.run.outputs import atomic_write_text  # noqa: E402
+from ldm_rl.run.outputs import atomic_write_text
 
 TASKS = ("block_stacking", "house_building", "bottle_arrangement", "bin_packing")
 MODELS = ("LDM(64)", "LDM(128)", "Naive")
@@ -144,7 +142,7 @@ def table(runs: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> str:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.aggregate_table1", description=__doc__.splitlines()[0])
     parser.add_argument("folders", nargs="+", type=Path, help="multirun folder(s) of train_dynamics.py")
     parser.add_argument("--out", type=Path, default=None, help="markdown file (default: <first folder>/table1.md)")
     args = parser.parse_args(argv)

@@ -1,6 +1,6 @@
 """Zero-shot generalization table (the paper's Table 2) from trained agents' checkpoints.
 
-    python recipes/generalization_table.py multirun/<date>/<time> [more folders or checkpoint.pt files]
+    python -m ldm_rl.reports.generalization_table multirun/<date>/<time> [more folders or checkpoint.pt files]
                                            [--episodes 100] [--seed 0] [--out DIR]
 
 Each checkpoint given (a ``checkpoint.pt``, or every one below a folder) of an agent trained on 3-block
@@ -27,10 +27,9 @@ from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from ldm_rl.evaluation import wilson_interval  # noqa: E402
-from ldm_rl.run.outputs import atomic_write_text  # noqa: E402
+ROOT = Path(__file__).resolve().parents[2]  # the repository (conf/, recipes/)
+from ldm_rl.evaluation import wilson_interval
+from ldm_rl.run.outputs import atomic_write_text
 
 EVALUATE = ROOT / "recipes" / "evaluate.py"
 # the paper's protocol: the object count each task's agent is trained on (its zero-shot counts are in the preset)
@@ -276,7 +275,7 @@ def markdown(evaluations: list[Evaluation], notes: list[str] | None = None,
 
 
 def main(argv: list[str] | None = None) -> str:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.generalization_table", description=__doc__.splitlines()[0])
     parser.add_argument("paths", nargs="+", type=Path,
                         help="train_policy.py run or sweep folders, checkpoint.pt files, or folders of evaluation.json")
     parser.add_argument("--episodes", type=int, default=100, help="greedy episodes per checkpoint and object count")
