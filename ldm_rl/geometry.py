@@ -51,6 +51,7 @@ __all__ = [
     "paste",
     "center_crop",
     "rotate",
+    "quarter_turns",
     "rotate_stack",
     "unrotate_stack",
     "heights_to_classes",
@@ -465,6 +466,21 @@ def rotate(images: Tensor, angles, mode: str = "bilinear") -> Tensor:
     anchor_r = torch.full((), (h - 1) // 2, device=images.device)
     anchor_c = torch.full((), (w - 1) // 2, device=images.device)
     return _sample(images, batch, anchor_r, anchor_c, wr, wc, mode)
+
+
+def quarter_turns(images: Tensor, turns: Tensor) -> Tensor:
+    """Turn each of ``[B, C, H, W]`` images by its own whole number of quarter turns, ``turns`` ``[B]`` int
+    (k → ``torch.rot90(image, k, (-2, -1))``, counter-clockwise as displayed; any integer, taken mod 4).
+    Exact (a permutation of pixels); square images only, so every turn keeps the shape."""
+    images = _check_images(images)
+    if images.dim() != 4 or images.shape[-1] != images.shape[-2]:
+        raise ValueError(f"images must be [B, C, H, H] (square), got {tuple(images.shape)}")
+    if not torch.is_tensor(turns) or turns.is_floating_point() or tuple(turns.shape) != (images.shape[0],):
+        shape = tuple(turns.shape) if torch.is_tensor(turns) else type(turns).__name__
+        raise ValueError(f"turns must be [{images.shape[0]}] int (one count per image), got {shape}"
+                         + (f" {turns.dtype}" if torch.is_tensor(turns) else ""))
+    rows = torch.arange(images.shape[0], device=images.device)
+    return torch.stack([images.rot90(k, (-2, -1)) for k in range(4)])[turns.remainder(4).to(images.device), rows]
 
 
 def rotate_stack(images: Tensor, num_rotations: int, mode: str = "bilinear") -> Tensor:

@@ -349,3 +349,19 @@ def test_flat_index_conversions_refuse_floats_and_wrong_widths():
         action_to_flat(torch.zeros(5, 2, dtype=torch.long), 4, 4)
     with pytest.raises(ValueError, match="integer tensor"):
         action_to_flat(torch.zeros(5, 3), 4, 4)
+
+
+def test_quarter_turns_turn_each_image_by_its_own_count_exactly():
+    images = torch.rand(6, 2, 9, 9, generator=torch.Generator().manual_seed(0))
+    turns = torch.tensor([0, 1, 2, 3, 5, -1])
+    out = g.quarter_turns(images, turns)
+    for row, k in enumerate(turns.tolist()):
+        assert torch.equal(out[row], images[row].rot90(k, (-2, -1)))
+    assert not torch.equal(out[1], images[1])  # not vacuous: a turn moves pixels
+    # four turns of a non-square image would change its shape: refused, as are float or misshaped counts
+    with pytest.raises(ValueError, match="square"):
+        g.quarter_turns(torch.rand(2, 1, 8, 9), torch.tensor([1, 2]))
+    with pytest.raises(ValueError, match=r"turns must be \[6\] int"):
+        g.quarter_turns(images, turns.float())
+    with pytest.raises(ValueError, match=r"turns must be \[6\] int"):
+        g.quarter_turns(images, turns[:3])

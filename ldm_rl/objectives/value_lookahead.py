@@ -254,14 +254,9 @@ class LookaheadLoss(TransitionLoss):
                       for i in range(0, b * n, self.chunk_size)]
         return torch.cat(values).reshape(b, n)
 
-    def _augmentation(self, heightmap: torch.Tensor):
-        """``heightmaps [B, 1, H, W] -> the same, turned``: the identity, or (``value_augmentation``) one random
-        quarter-turn count per row, drawn now and applied to every heightmap of that row."""
-        if self.value_augmentation is None:
-            return lambda images: images
-        turns = torch.randint(4, (heightmap.shape[0],), device=heightmap.device)
-        angles = turns.to(torch.float32) * (torch.pi / 2)
-        return lambda images: geometry.rotate(images, angles, mode="nearest")
+    def _draw_turns(self, batch: int, device) -> torch.Tensor | None:
+        """``[batch]`` quarter-turn counts for ``value_augmentation`` (torch's global RNG), or None when off."""
+        return None if self.value_augmentation is None else torch.randint(4, (batch,), device=device)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         self.check_batch(tensordict)
@@ -277,13 +272,17 @@ class LookaheadLoss(TransitionLoss):
         next_heightmap = tensordict.get((keys.NEXT, k.heightmap))
         next_in_hand = tensordict.get((keys.NEXT, k.in_hand))
         reward = tensordict.get(k.reward).reshape(-1, 1).float()
-        turn = self._augmentation(next_heightmap)
-        v_real, r_real = self.value_network.value_and_reward(turn(next_heightmap), next_in_hand)
+        turns = self._draw_turns(next_heightmap.shape[0], next_heightmap.device)
+
+        def turned(heightmap):  # the same count for a row's real and predicted next state
+            return heightmap if turns is None else geometry.quarter_turns(heightmap, turns)
+
+        v_real, r_real = self.value_network.value_and_reward(turned(next_heightmap), next_in_hand)
         loss_value, loss_reward = huber(v_real, v_target), huber(r_real, reward)
         if self.value_on_prediction:
             predicted = predicted_next_state(self.dynamics, tensordict, logits_key=k.next_logits,
                                              state_keys=(k.heightmap, k.in_hand, k.holding, k.action))
-            v_pred, r_pred = self.value_network.value_and_reward(turn(predicted.heightmap), next_in_hand)
+            v_pred, r_pred = self.value_network.value_and_reward(turned(predicted.heightmap), next_in_hand)
             loss_value = loss_value + huber(v_pred, v_target)
             loss_reward = loss_reward + huber(r_pred, reward)
         td_error = (v_real.detach() - v_target).abs().reshape(-1)
