@@ -423,8 +423,10 @@ class AgentConfig:
 
 @dataclass
 class PlannerConfig:
-    """``conf/planner/*.yaml``: ``ldm_rl.planning.LookaheadPlanner``."""
+    """``conf/planner/*.yaml``: the LDM agent's planner (``name``: one of ``ldm_rl.agents.PLANNERS``); the
+    baselines read ``tau`` (FC-DQN, Dyna-Q) or ``num_candidates``, ``tau_value``, ``chunk_size`` (RS)."""
 
+    name: str = spec("diverse", choices=("diverse",), doc="the planner (ldm_rl.agents.PLANNERS)")
     num_candidates: int = spec(ge=1, doc="N proposals per decision")
     proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode while exploring")
     greedy_proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode under DETERMINISTIC")
@@ -692,15 +694,31 @@ def _omegaconf_line(err: BaseException) -> str:
     return text
 
 
-def config_differences(run: Mapping[str, Any], given: Mapping[str, Any], ignore: tuple[str, ...] = ("resume",), prefix: str = "") -> list[str]:
-    """``key: run has X, the command gives Y`` for each leaf where two resolved configs differ."""
+def _schema_default(schema: type | None, key: str) -> Any:
+    """The default of field ``key`` of the dataclass ``schema`` (``MISSING`` when none or no schema)."""
+    for f in dataclasses.fields(schema) if schema is not None else ():
+        if f.name == key:
+            return f.default if f.default is not dataclasses.MISSING else MISSING
+    return MISSING
+
+
+def config_differences(run: Mapping[str, Any], given: Mapping[str, Any], ignore: tuple[str, ...] = ("resume",),
+                       prefix: str = "", schema: type | None = None) -> list[str]:
+    """``key: run has X, the command gives Y`` for each leaf where two resolved configs differ.
+
+    With ``schema`` (the dataclass of ``given``), a key the run's config lacks is no difference when the
+    command gives the schema's default: a key added after the run was written, whose default keeps the
+    behaviour the run had (e.g. ``planner.name: diverse``)."""
     out = []
+    hints = typing.get_type_hints(schema) if schema is not None else {}
     for key in sorted(set(run) | set(given)):
         if prefix + key in ignore:
             continue
         a, b = run.get(key, "<absent>"), given.get(key, "<absent>")
         if isinstance(a, Mapping) and isinstance(b, Mapping):
-            out += config_differences(a, b, ignore, f"{prefix}{key}.")
+            out += config_differences(a, b, ignore, f"{prefix}{key}.", _nested_schema(hints.get(key)))
+        elif key not in run and b == _schema_default(schema, key):
+            continue
         elif a != b:
             out.append(f"{prefix}{key}: the run has {_show(a)}, the command gives {_show(b)}")
     return out

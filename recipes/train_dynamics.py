@@ -30,7 +30,7 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import ConfigError, config_differences, validate_config  # registers the schema
+from ldm_rl.config_schema import Config, ConfigError, config_differences, validate_config  # registers the schema
 from ldm_rl.run.cli import check_command_line
 
 CHECKPOINT = "checkpoint.pt"
@@ -126,7 +126,7 @@ def train(cfg: DictConfig) -> dict:
         if not cfg.resume:
             raise ConfigError(f"{out_dir} already holds a run's checkpoint (iteration {meta.get('iteration')}/"
                               f"{meta.get('iterations')}): continue it with resume=true, or choose another output folder")
-        diffs = config_differences(meta.get("config", {}), config)
+        diffs = config_differences(meta.get("config", {}), config, schema=Config)
         if diffs:
             raise ConfigError(f"resume=true: this command's config differs from the run's in {checkpoint_path}: "
                               f"{'; '.join(diffs[:6])} (a resumed run keeps its config)")

@@ -344,3 +344,30 @@ def test_multirun_over_seeds_gives_one_run_per_seed(tmp_path):
     first, second = (load_demos(sweep / str(job) / "demos") for job in (0, 1))
     assert first.batch_size == second.batch_size == (2,)
     assert not (first["heightmap"] == second["heightmap"]).all()  # different seeds, different scenes
+
+
+def test_a_run_written_before_a_key_existed_resumes_when_the_key_is_at_its_default():
+    """Resuming compares the run's stored config with the command's: a key the run lacks is no difference
+    when the command gives the schema's default (planner.name, added after runs were written), and is one
+    otherwise; without a schema every absent key is one."""
+    cfg = make_cfg("experiment=stacking_lite", config_name="train_policy")
+    cfg.logger.exp_name = "run"  # an interpolation of Hydra's runtime
+    given = OmegaConf.to_container(cfg, resolve=True)
+    run = {**given, "planner": {k: v for k, v in given["planner"].items() if k != "name"}}
+    schema = config_schema.TrainPolicyConfig
+    assert config_schema.config_differences(run, given, schema=schema) == []
+    assert config_schema.config_differences(run, given) == ["planner.name: the run has '<absent>', the command gives 'diverse'"]
+    other = {**given, "planner": {**given["planner"], "name": "depth2"}}
+    assert config_schema.config_differences(run, other, schema=schema) == [
+        "planner.name: the run has '<absent>', the command gives 'depth2'"]
+    changed = {**given, "agent": {**given["agent"], "gamma": 0.9}}
+    assert config_schema.config_differences(run, changed, schema=schema) == [
+        "agent.gamma: the run has 0.5, the command gives 0.9"]
+
+
+def test_the_planner_choices_are_the_registered_planners():
+    from ldm_rl.agents import PLANNERS
+
+    rule = next(f for f in config_schema.dataclasses.fields(config_schema.PlannerConfig) if f.name == "name")
+    assert set(rule.metadata["rule"].choices) == set(PLANNERS)
+    assert {OmegaConf.load(p).name for p in (CONF / "planner").glob("*.yaml")} == set(PLANNERS)

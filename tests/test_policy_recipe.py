@@ -92,6 +92,23 @@ def test_train_policy_config_composes_every_group():
     assert build_agent(cfg, float(cfg.env.max_height)).planner.q_network.frame_margin == 8
 
 
+def test_the_planner_is_chosen_by_name_and_configs_without_the_name_get_the_papers():
+    from omegaconf import OmegaConf
+
+    from ldm_rl.agents import build_agent
+    from ldm_rl.planning.planner import LookaheadPlanner
+
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        composed = compose(config_name="train_policy", overrides=["experiment=smoke"])
+    composed.logger.exp_name = "run"  # an interpolation of Hydra's runtime
+    cfg = OmegaConf.to_container(composed, resolve=True)
+    assert cfg["planner"]["name"] == "diverse"
+    old = {**cfg, "planner": {k: v for k, v in cfg["planner"].items() if k != "name"}}  # a checkpoint's config before the key
+    assert type(build_agent(old, 0.25).planner) is LookaheadPlanner
+    with pytest.raises(ValueError, match=r"planner.name must be one of \['diverse'\], got 'beam'"):
+        build_agent({**cfg, "planner": {**cfg["planner"], "name": "beam"}}, 0.25)
+
+
 @pytest.mark.slow
 def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path):
     """SIGKILL after the first checkpoint, then resume=true: the same final weights and curve as the

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Mapping
 
-__all__ = ["AGENTS", "build_agent", "build_ldm_agent", "build_fcdqn_agent", "build_rs_agent", "build_dynaq_agent",
+__all__ = ["AGENTS", "PLANNERS", "build_agent", "build_ldm_agent", "build_fcdqn_agent", "build_rs_agent", "build_dynaq_agent",
            "load_agent"]
 
 
@@ -23,16 +23,36 @@ def _plain(node) -> dict:
             for key, value in dict(node or {}).items()}
 
 
+def _diverse_planner():
+    from ldm_rl.planning.planner import LookaheadPlanner
+
+    return LookaheadPlanner
+
+
+# ``cfg.planner.name`` -> a function returning the LDM agent's planner class, built as
+# ``cls(q_network, dynamics, value_network, **cfg.planner without name)`` (a TensorDictModule writing ``action``)
+PLANNERS: dict[str, Callable[[], type]] = {"diverse": _diverse_planner}
+
+
+def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_network):
+    """The planner named by ``planner.name`` (configs written before the key existed: ``diverse``)."""
+    kwargs = _plain(planner_cfg)
+    name = kwargs.pop("name", "diverse")
+    if name not in PLANNERS:
+        raise ValueError(f"planner.name must be one of {sorted(PLANNERS)}, got {name!r}")
+    return PLANNERS[name]()(q_network, dynamics, value_network, **kwargs)
+
+
 def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     """The paper's agent from ``cfg.model`` (the LDM), ``cfg.loss`` (its focal loss), ``cfg.agent``
-    (Q/V presets, targets, optimisation) and ``cfg.planner`` (proposals and schedules)."""
+    (Q/V presets, targets, optimisation) and ``cfg.planner`` (which planner, :data:`PLANNERS`, and its
+    proposals and schedules)."""
     import torch
 
     from ldm_rl.agents.ldm import LDMAgent
     from ldm_rl.models.q_fcn import build_q_network
     from ldm_rl.models.v_cnn import build_value_network
     from ldm_rl.objectives import LDMLoss, LookaheadLoss
-    from ldm_rl.planning.planner import LookaheadPlanner
     from ldm_rl.world_model import build_dynamics_model
 
     agent_cfg = _plain(cfg["agent"])
@@ -42,7 +62,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"),
                                 frame_margin=int(agent_cfg.get("q_frame_margin") or 0), **common)
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"), **common)
-    planner = LookaheadPlanner(q_network, dynamics, value_network, **_plain(cfg["planner"]))
+    planner = _ldm_planner(cfg["planner"], q_network, dynamics, value_network)
     loss = LookaheadLoss(
         q_network, dynamics, value_network,
         gamma=float(agent_cfg["gamma"]),

@@ -247,7 +247,7 @@ def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, s
                 given = _resolved_task_config(cfg)
             except Exception as err:
                 _fail(_omegaconf_line(err))
-            diffs = config_differences(meta.get("config", {}), given)
+            diffs = config_differences(meta.get("config", {}), given, schema=schema)
             if diffs:
                 shown = "; ".join(diffs[:6]) + ("; ..." if len(diffs) > 6 else "")
                 _fail(f"resume=true: this command's config differs from the run's in {checkpoint}: {shown} (a resumed run "
