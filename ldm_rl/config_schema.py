@@ -1,4 +1,4 @@
-"""Typed configuration: the schema of ``conf/config.yaml`` and the recipes' command-line pre-flight.
+"""Typed configuration: the schema of each recipe's primary config ``conf/<recipe>.yaml``.
 
 The pattern (docs/reliability.md has the long form):
 
@@ -6,14 +6,14 @@ The pattern (docs/reliability.md has the long form):
    through :func:`spec`, the allowed range or choices and a short doc; an optional ``check(node)``
    static method holds cross-field rules. Values live in the YAML files, so most fields default to
    ``MISSING``.
-2. **One dataclass per primary config** (``Config`` for ``conf/config.yaml``) with a field per group,
+2. **One dataclass per primary config** (``TrainDynamicsConfig`` for ``conf/train_dynamics.yaml``, ...) with a field per group it reads,
    stored by :func:`register_configs` in Hydra's ConfigStore as ``schema/<name>`` (package
    ``_global_``); the primary YAML lists ``- optional schema: <name>`` first in its defaults. A recipe
    imports this module (registration runs at import), so Hydra rejects a wrong type or an unknown
    key while composing, even for ``--cfg job``.
 3. :func:`validate_config` checks ranges, choices and cross-field rules (and types again, for code
    that composed without the schema); every problem is reported on one line.
-4. A recipe's ``if __name__ == "__main__":`` calls :func:`check_command_line` before ``main()``: it
+4. A recipe's ``if __name__ == "__main__":`` calls ``ldm_rl.run.cli.check_command_line`` before ``main()``: it
    composes the command line as Hydra will, validates it, handles ``resume=true`` (the run's own
    overrides are replayed), and on any problem prints ``error: ...`` (one line) and exits with code 2
    before Hydra creates an output folder and before torch is imported.
@@ -45,7 +45,8 @@ __all__ = [
     "DemosConfig",
     "MetricsConfig",
     "DynamicsConfig",
-    "Config",
+    "TrainDynamicsConfig",
+    "DemosRunConfig",
     "SCHEMAS",
     "register_schema",
     "register_configs",
@@ -283,18 +284,32 @@ class DynamicsConfig:
 
 
 @dataclass
-class RunSettings:
+class SeedAndThreads:
     """The keys every recipe's primary config has at its top level."""
 
     seed: int = spec(0, ge=0, doc="seed of every RNG")
-    device: str = spec("auto", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
-                       doc="torch device")
     threads: Optional[int] = spec(1, ge=1, le=1024, doc="torch intra-op threads; null = torch's default")
 
 
 @dataclass
-class Config(RunSettings):
-    """``conf/config.yaml``: the groups, plus seed / device / threads / resume."""
+class RunSettings(SeedAndThreads):
+    """The top-level keys of the recipes that run networks: a seed, threads and a device."""
+
+    device: str = spec("auto", pattern=r"auto|cpu|cuda(:\d+)?|mps|xpu(:\d+)?", allowed="auto, cpu, cuda, cuda:N or mps",
+                       doc="torch device")
+
+
+@dataclass
+class DemosRunConfig(SeedAndThreads):
+    """``conf/generate_demos.yaml`` and ``conf/render_expert_strip.yaml``: the task and the expert."""
+
+    env: EnvConfig = group(EnvConfig)
+    demos: DemosConfig = group(DemosConfig)
+
+
+@dataclass
+class TrainDynamicsConfig(RunSettings):
+    """``conf/train_dynamics.yaml``: the groups, plus seed / device / threads / resume."""
 
     env: EnvConfig = group(EnvConfig)
     model: ModelConfig = group(ModelConfig)
@@ -520,7 +535,7 @@ class TrainPolicyConfig(RunSettings):
     resume: bool = False
     compile: bool = spec(False, doc="torch.compile the inference passes (decisions, lookahead targets)")
 
-    check = Config.check
+    check = TrainDynamicsConfig.check
 
 
 @dataclass
@@ -554,7 +569,9 @@ class EvaluateConfig(RunSettings):
 
 
 # the schema of each primary config, by its name (conf/<name>.yaml lists `- optional schema: <name>`)
-SCHEMAS: dict[str, type] = {"config": Config, "train_policy": TrainPolicyConfig, "evaluate": EvaluateConfig}
+SCHEMAS: dict[str, type] = {"train_dynamics": TrainDynamicsConfig, "generate_demos": DemosRunConfig,
+                             "render_expert_strip": DemosRunConfig, "train_policy": TrainPolicyConfig,
+                             "evaluate": EvaluateConfig}
 
 
 def register_schema(name: str, node: type) -> None:
@@ -632,7 +649,7 @@ def _first_line(err: BaseException) -> str:
     return lines[0] if lines else type(err).__name__
 
 
-def validate_config(cfg: DictConfig | Mapping[str, Any], schema: type = Config) -> None:
+def validate_config(cfg: DictConfig | Mapping[str, Any], schema: type) -> None:
     """Raise :class:`ConfigError` (one line listing every problem) unless ``cfg`` fits ``schema``:
     types and keys (merged into the structured schema, so configs composed without the schema are
     checked too), then each field's :class:`Rule` and each group's ``check``."""

@@ -18,13 +18,13 @@ import sys
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import validate_config  # registers the schema
+from ldm_rl.config_schema import DemosRunConfig, validate_config  # registers the schema
 from ldm_rl.run.cli import check_command_line
 
 log = logging.getLogger(__name__)
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="../conf", config_name="generate_demos")
 def main(cfg: DictConfig) -> None:
     from pathlib import Path
 
@@ -32,7 +32,7 @@ def main(cfg: DictConfig) -> None:
     from ldm_rl.run.outputs import hydra_output_dir, save_resolved_config
     from ldm_rl.torch_utils import seed_everything, set_threads
 
-    validate_config(cfg)  # each job of a sweep; a single run was checked before Hydra started
+    validate_config(cfg, DemosRunConfig)  # each job of a sweep; a single run was checked before Hydra started
     set_threads(cfg.threads)
     seed_everything(cfg.seed)
     demos = cfg.demos
@@ -56,5 +56,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    sys.argv = check_command_line(__file__)
+    sys.argv = check_command_line(__file__, config_name="generate_demos")
     main()

@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 DPI = 100
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="../conf", config_name="render_expert_strip")
 def main(cfg: DictConfig) -> None:
     import gymnasium as gym
     import numpy as np
@@ -34,8 +34,10 @@ def main(cfg: DictConfig) -> None:
     from ldm_rl.envs import register_envs
     from ldm_rl.envs.torchrl_env import env_kwargs_from_config
     from ldm_rl.plots import plot_expert_strip, require_matplotlib
+    from ldm_rl.torch_utils import set_threads
 
     require_matplotlib()
+    set_threads(cfg.threads)
     task_name = str(cfg.env.id).split("/")[-1].split("-")[0]
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     out = Path(cfg.demos.strip.out) if cfg.demos.strip.out else run_dir / f"expert_{task_name}.png"
@@ -65,5 +67,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    sys.argv = check_command_line(__file__)
+    sys.argv = check_command_line(__file__, config_name="render_expert_strip")
     main()

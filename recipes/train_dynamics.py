@@ -30,7 +30,7 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import Config, ConfigError, config_differences, validate_config  # registers the schema
+from ldm_rl.config_schema import ConfigError, TrainDynamicsConfig, config_differences, validate_config  # registers the schema
 from ldm_rl.run.cli import check_command_line
 
 CHECKPOINT = "checkpoint.pt"
@@ -87,7 +87,7 @@ def resume_hint(out_dir) -> str:
     return f"python {_short(os.path.abspath(__file__))} resume=true hydra.run.dir={_short(str(out_dir))}"
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train_dynamics")
 def main(cfg: DictConfig) -> dict:
     from ldm_rl.run.checkpoint import CheckpointError
     from ldm_rl.run.signals import RunStopped
@@ -113,7 +113,7 @@ def train(cfg: DictConfig) -> dict:
     from ldm_rl.run.checkpoint import clean_stale_temporaries, read_checkpoint_meta
     from ldm_rl.run.outputs import hydra_output_dir
 
-    validate_config(cfg)  # the command line was checked before Hydra started; this covers each job of a sweep
+    validate_config(cfg, TrainDynamicsConfig)  # the command line was checked before Hydra started; this covers each job of a sweep
     out_dir = hydra_output_dir()
     config = OmegaConf.to_container(cfg, resolve=True)
     removed = clean_stale_temporaries(out_dir)
@@ -126,7 +126,7 @@ def train(cfg: DictConfig) -> dict:
         if not cfg.resume:
             raise ConfigError(f"{out_dir} already holds a run's checkpoint (iteration {meta.get('iteration')}/"
                               f"{meta.get('iterations')}): continue it with resume=true, or choose another output folder")
-        diffs = config_differences(meta.get("config", {}), config, schema=Config)
+        diffs = config_differences(meta.get("config", {}), config, schema=TrainDynamicsConfig)
         if diffs:
             raise ConfigError(f"resume=true: this command's config differs from the run's in {checkpoint_path}: "
                               f"{'; '.join(diffs[:6])} (a resumed run keeps its config)")
@@ -287,5 +287,5 @@ def sr_verdict(final: dict, iterations: int) -> str:
 
 
 if __name__ == "__main__":
-    sys.argv = check_command_line(__file__, checkpoint_name=CHECKPOINT)
+    sys.argv = check_command_line(__file__, config_name="train_dynamics", checkpoint_name=CHECKPOINT)
     main()

@@ -98,7 +98,7 @@ def test_make_dynamics_model_inside_a_hydra_app_leaves_its_state():
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         ldm_rl.make_dynamics_model(overrides=["model.width=0.0625"])
         assert GlobalHydra.instance().is_initialized()
-        assert compose("config", overrides=["model=naive"]).model.name == "naive"
+        assert compose("train_dynamics", overrides=["model=naive"]).model.name == "naive"
 
 
 # ----------------------------------------------------------------------------------------- keys that never clobber

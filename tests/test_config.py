@@ -1,4 +1,4 @@
-"""The Hydra front door: conf/config.yaml composes, every recipe honours Hydra's CLI, and the typed schema
+"""The Hydra front door: each recipe's primary config (conf/<recipe>.yaml) composes, every recipe honours Hydra's CLI, and the typed schema
 (ldm_rl.config_schema) stops wrong types, out-of-range values and contradictions in one line, before any
 work and without an output folder."""
 
@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from ldm_rl import config_schema  # registers schema/config, as every recipe does at import
+from ldm_rl import config_schema  # registers the schemas, as every recipe does at import
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -23,7 +23,7 @@ REPORTS = sorted(p.stem for p in (ROOT / "ldm_rl" / "reports").glob("*.py") if n
 GROUPS = ("env", "model", "loss", "logger", "demos", "dynamics")
 
 
-def make_cfg(*overrides, config_name="config"):
+def make_cfg(*overrides, config_name="train_dynamics"):
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         return compose(config_name=config_name, overrides=list(overrides))
 
@@ -33,8 +33,8 @@ def test_config_composes_with_every_group_and_overrides():
     assert cfg.seed == 3 and cfg.device == "auto" and cfg.threads == 1 and cfg.resume is False
     assert cfg.logger.backend == "tensorboard"
     for group in GROUPS:
-        assert group in cfg, f"config group {group!r} missing from conf/config.yaml"
-    config_schema.validate_config(cfg)
+        assert group in cfg, f"config group {group!r} missing from conf/train_dynamics.yaml"
+    config_schema.validate_config(cfg, config_schema.TrainDynamicsConfig)
 
 
 @pytest.mark.parametrize("group", GROUPS)
@@ -43,7 +43,7 @@ def test_every_option_of_every_group_composes_and_is_valid(group):
     assert options, f"conf/{group}/ has no options"
     for option in options:
         cfg = make_cfg(f"{group}={option}")
-        config_schema.validate_config(cfg)
+        config_schema.validate_config(cfg, config_schema.TrainDynamicsConfig)
         assert OmegaConf.select(cfg, f"hydra.runtime.choices.{group}", default=option) == option
 
 
@@ -61,7 +61,7 @@ def _primary_config_of(preset_text: str) -> str:
     """The primary config of the recipe a preset's header names (``python recipes/<name>.py``)."""
     match = re.search(r"python recipes/(\w+)\.py", preset_text)
     if not match:
-        return "config"
+        return "train_dynamics"
     recipe = (ROOT / "recipes" / f"{match.group(1)}.py").read_text()
     return re.search(r'config_name="(\w+)"', recipe).group(1)
 
@@ -88,8 +88,8 @@ def test_experiment_presets_compose_and_set_what_they_say(preset):
             group = target.split()[-1].strip("/")
             expected = OmegaConf.load(CONF / group / f"{option}.yaml")
             assert cfg[group].get("id", None) == expected.get("id", None) and cfg[group].keys() >= expected.keys(), preset
-    if config_name == "config":
-        config_schema.validate_config(cfg)
+    if config_name == "train_dynamics":
+        config_schema.validate_config(cfg, config_schema.TrainDynamicsConfig)
 
 
 _IDENTITY_KEYS = ("id", "name", "backend")  # the key that says which option of a group is in the config
@@ -142,7 +142,7 @@ def test_user_config_dir_extends_groups(tmp_path):
     (tmp_path / "logger").mkdir()
     (tmp_path / "logger" / "mine.yaml").write_text("backend: none\nexp_name: mine\n")
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        cfg = compose(config_name="config", overrides=["logger=mine", f"hydra.searchpath=[file://{tmp_path}]"])
+        cfg = compose(config_name="train_dynamics", overrides=["logger=mine", f"hydra.searchpath=[file://{tmp_path}]"])
     assert cfg.logger.exp_name == "mine"
 
 
@@ -284,11 +284,11 @@ def test_the_command_line_check_imports_no_torch():
         "import sys\n"
         "from ldm_rl.run.cli import check_command_line\n"
         f"argv = [{str(ROOT / 'recipes' / 'train_dynamics.py')!r}, 'dynamics.lr=-1']\n"
-        "try:\n    check_command_line(argv[0], argv=argv, checkpoint_name='checkpoint.pt')\n"
+        "try:\n    check_command_line(argv[0], config_name='train_dynamics', argv=argv, checkpoint_name='checkpoint.pt')\n"
         "except SystemExit as stop:\n    assert stop.code == 2\n"
         "assert 'torch' not in sys.modules, 'the pre-flight imported torch'\n"
         "argv = argv[:1] + ['seed=4']\n"
-        "assert check_command_line(argv[0], argv=argv) == argv\n"
+        "assert check_command_line(argv[0], config_name='train_dynamics', argv=argv) == argv\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
 
@@ -310,7 +310,7 @@ def test_the_command_line_check_imports_no_torch():
 ])
 def test_validate_config_names_the_key_and_the_allowed_values(overrides, expected):
     with pytest.raises(config_schema.ConfigError) as err:
-        config_schema.validate_config(make_cfg(*overrides))
+        config_schema.validate_config(make_cfg(*overrides), config_schema.TrainDynamicsConfig)
     assert str(err.value) == expected or str(err.value).startswith(expected)
     assert "\n" not in str(err.value)
 
@@ -321,13 +321,13 @@ def test_types_and_unknown_keys_fail_at_composition():
     with pytest.raises(ConfigCompositionException):
         make_cfg("dynamics.iteration=5")
     with pytest.raises(config_schema.ConfigError, match="Key 'iteration' not in 'DynamicsConfig'"):
-        config_schema.validate_config(make_cfg("+dynamics.iteration=5"))  # Hydra's "+" adds keys to any node
+        config_schema.validate_config(make_cfg("+dynamics.iteration=5"), config_schema.TrainDynamicsConfig)  # Hydra's "+" adds keys to any node
     # configs composed without the schema are typed by validate_config
     # a config composed without the schema (a plain dict) is typed by validate_config
     plain = OmegaConf.create(OmegaConf.to_container(make_cfg(), resolve=False))
     OmegaConf.update(plain, "dynamics.iterations", "abc")
     with pytest.raises(config_schema.ConfigError, match="dynamics.iterations: Value 'abc' of type 'str' could not be converted"):
-        config_schema.validate_config(plain)
+        config_schema.validate_config(plain, config_schema.TrainDynamicsConfig)
 
 
 def test_multirun_over_seeds_gives_one_run_per_seed(tmp_path):
@@ -335,7 +335,7 @@ def test_multirun_over_seeds_gives_one_run_per_seed(tmp_path):
     sweep = tmp_path / "sweep"
     done = run_recipe(
         ROOT / "recipes" / "generate_demos.py",
-        "-m", "seed=0,1", "demos.num_steps=2", "demos.progress=false", "logger=none", f"hydra.sweep.dir={sweep}",
+        "-m", "seed=0,1", "demos.num_steps=2", "demos.progress=false", f"hydra.sweep.dir={sweep}",
         cwd=tmp_path,
     )
     assert done.returncode == 0, done.stderr

@@ -80,7 +80,7 @@ def test_default_threads_is_a_fixed_number(reference):
     from ldm_rl import config_schema  # noqa: F401  (registers the schema)
 
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        assert compose(config_name="config").threads == 1
+        assert compose(config_name="train_dynamics").threads == 1
     assert load_checkpoint(reference).meta["threads"] == 1  # the recipe applied it
 
 

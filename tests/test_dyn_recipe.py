@@ -20,7 +20,7 @@ def test_model_configs_compose_and_build(model, name, crop):
     from ldm_rl.world_model import build_dynamics_model
 
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        cfg = compose(config_name="config", overrides=[f"model={model}", "model.width=0.125"])
+        cfg = compose(config_name="train_dynamics", overrides=[f"model={model}", "model.width=0.125"])
     assert cfg.model.name == name and cfg.model.crop_size == crop and cfg.model.preset == "lite"
     built = build_dynamics_model(cfg.model, max_height=0.15)
     assert built.frame == ("global" if name == "naive" else "local")
@@ -31,7 +31,7 @@ def test_paper_preset_builds_the_reference_widths():
     from ldm_rl.world_model import build_dynamics_model, count_parameters
 
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        cfg = compose(config_name="config", overrides=["model.preset=paper", "model.num_depth_classes=11"])
+        cfg = compose(config_name="train_dynamics", overrides=["model.preset=paper", "model.num_depth_classes=11"])
     assert count_parameters(build_dynamics_model(cfg.model, 0.15).net.pick) == 24_893_963
 
 
@@ -124,16 +124,16 @@ def test_table1_presets_follow_the_protocol(task, iterations):
     and no model of its own (so `model=ldm64,ldm128,naive` sweeps the three rows)."""
     env = OmegaConf.load(ROOT / "conf" / "env" / f"{task}.yaml")
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        default = compose(config_name="config", overrides=[f"experiment=table1_{task}"])
+        default = compose(config_name="train_dynamics", overrides=[f"experiment=table1_{task}"])
         for model in ("ldm64", "ldm128", "naive"):
-            cfg = compose(config_name="config", overrides=[f"experiment=table1_{task}", f"model={model}"])
-            plain = compose(config_name="config", overrides=[f"env={task}", f"model={model}"])
+            cfg = compose(config_name="train_dynamics", overrides=[f"experiment=table1_{task}", f"model={model}"])
+            plain = compose(config_name="train_dynamics", overrides=[f"env={task}", f"model={model}"])
             assert OmegaConf.to_container(cfg.model) == OmegaConf.to_container(plain.model), model
     assert default.env.id == env.id and default.env.max_height == env.max_height and default.env.num_objects == env.num_objects
     assert default.dynamics.num_demo_steps == 5000 and default.dynamics.iterations == iterations
     assert default.dynamics.val_fraction == 0.2 and default.demos.noise.position > 0
     assert default.model.name == "ldm" and default.model.crop_size == 64
-    config_schema.validate_config(default)
+    config_schema.validate_config(default, config_schema.TrainDynamicsConfig)
 
 
 def _dynamics_command(run_dir, *extra) -> list[str]:

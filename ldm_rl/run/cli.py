@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import SCHEMAS, Config, ConfigError, EvaluateConfig, _omegaconf_line, config_differences, validate_config
+from ldm_rl.config_schema import SCHEMAS, ConfigError, EvaluateConfig, _omegaconf_line, config_differences, validate_config
 from ldm_rl.extras import MissingExtraError, require_logger_backend
 
 __all__ = ["check_command_line", "machine_problems"]
@@ -105,15 +105,15 @@ def _resolved_task_config(cfg: DictConfig) -> dict:
 def check_command_line(
     recipe_file: str,
     *,
+    config_name: str,
     config_path: str = "../conf",
-    config_name: str = "config",
     argv: list[str] | None = None,
     checkpoint_name: str | None = None,
     schema: type | None = None,
 ) -> list[str]:
     """Compose and check a recipe's command line the way ``@hydra.main`` will, before it runs.
 
-    Call as ``sys.argv = check_command_line(__file__, checkpoint_name="checkpoint.pt")`` above
+    Call as ``sys.argv = check_command_line(__file__, config_name="train_policy", checkpoint_name="checkpoint.pt")`` above
     ``main()``. ``checkpoint_name`` (resumable recipes) enables ``resume=true``:
 
     * ``resume=true hydra.run.dir=DIR`` continues the run in ``DIR``: the overrides stored in
@@ -148,7 +148,7 @@ def check_command_line(
     if args.help or args.hydra_help or args.info or args.shell_completion or args.experimental_rerun:
         return argv
     try:
-        return _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, schema or SCHEMAS.get(config_name, Config))
+        return _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, schema or SCHEMAS.get(args.config_name) or SCHEMAS[config_name])
     except _Fail as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
@@ -174,6 +174,9 @@ def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, s
         parsed = OverridesParser.create().parse_overrides(args.overrides)
     except Exception as err:
         _fail(_omegaconf_line(err))
+    if checkpoint_name is None and any(o.key_or_group == "resume" for o in parsed):
+        _fail(f"{' '.join(o.input_line for o in parsed if o.key_or_group == 'resume')}: {stem} has nothing to resume "
+              "(it writes no checkpoint)")
     search_path = create_automatic_config_search_path(recipe_file, None, config_path)
     if args.config_dir is not None:
         from hydra.core.config_search_path import SearchPathQuery
@@ -228,8 +231,6 @@ def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, s
                     where = ""
                 _fail(f"{run_dir} already holds a run's checkpoint{where}: continue it with resume=true, or choose a new "
                       "hydra.run.dir")
-        elif resume and checkpoint_name is None and not show:
-            _fail(f"resume=true: {stem} has nothing to resume (it writes no checkpoint)")
         try:
             validate_config(cfg, schema)
         except ConfigError as err:

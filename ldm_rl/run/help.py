@@ -4,14 +4,11 @@
 (``--hydra-help``, ``--info`` and ``--cfg`` still go to Hydra). The text comes from the config files, so each
 thing is written in one place:
 
-1. **What the recipe does and writes**: its paragraph of the primary config's ``hydra.help.header``. A
-   header may hold one paragraph per recipe that composes the file, each starting at column 0 with
-   ``recipes/<name>.py`` (``conf/config.yaml`` serves three recipes); a header without such a paragraph is
-   printed whole.
-2. **The groups it reads**: those of the primary config's defaults list (not ``schema``), narrowed by
-   :data:`READS` for a recipe that reads only some of a shared file's groups; ``experiment`` lists the
-   presets whose comments run this recipe (``python recipes/<name>.py ...``), also when the primary
-   config has no ``experiment`` default (then they are added with ``+experiment=NAME``).
+1. **What the recipe does and writes**: its primary config's ``hydra.help.header`` (each recipe has its
+   own primary config, ``conf/<name>.yaml``, listing only the groups it reads).
+2. **The groups it reads**: those of the primary config's defaults list (not ``schema``); ``experiment``
+   lists the presets whose comments run this recipe (``python recipes/<name>.py ...``), also when the
+   primary config has no ``experiment`` default (then they are added with ``+experiment=NAME``).
 3. **Every key with its meaning**: the primary config's own keys and the chosen option file of each
    group, comments included (the comments are the key docs).
 4. The primary config's ``hydra.help.footer``.
@@ -27,14 +24,7 @@ from typing import Iterable, Sequence
 
 from omegaconf import OmegaConf
 
-__all__ = ["READS", "recipe_help", "print_recipe_help"]
-
-#: Recipes that compose a primary config shared with other recipes but read only some of its groups
-#: (the others are composed, and ignored). A recipe not listed reads every group of its primary config.
-READS: dict[str, tuple[str, ...]] = {
-    "generate_demos": ("env", "demos"),
-    "render_expert_strip": ("env", "demos"),
-}
+__all__ = ["recipe_help", "print_recipe_help"]
 
 _WIDTH = 110
 
@@ -45,20 +35,6 @@ def _raw_help(primary: dict, key: str, stem: str) -> str:
     text = str(help_node.get(key) or "")
     app_name = str(help_node.get("app_name") or f"ldm_rl {stem}")
     return text.replace("${hydra.help.app_name}", app_name).replace("${hydra.job.name}", stem)
-
-
-def _recipe_paragraph(header: str, stem: str) -> str:
-    """The paragraph of ``header`` that starts with ``recipes/<stem>.py`` at column 0 (else the whole header)."""
-    blocks: dict[str, list[str]] = {}
-    current = None
-    for line in header.splitlines():
-        start = re.match(r"recipes/(\w+)\.py\b", line)
-        if start:
-            current = start.group(1)
-            blocks[current] = []
-        if current is not None:
-            blocks[current].append(line)
-    return "\n".join(blocks[stem]) if stem in blocks else header
 
 
 def _default_groups(primary: dict) -> list[tuple[str, str | None]]:
@@ -139,7 +115,7 @@ def _example(groups, presets, has_experiment, conf_dirs) -> str:
     return f"{'' if has_experiment else '+'}experiment={presets[0]}"
 
 
-def recipe_help(recipe_file: str, *, config_path: str = "../conf", config_name: str = "config",
+def recipe_help(recipe_file: str, *, config_name: str, config_path: str = "../conf",
                 config_dir: str | None = None, overrides: Sequence[str] = (),
                 checkpoint_name: str | None = None) -> str:
     """The ``--help`` text of ``recipe_file`` (a recipe composing ``<config_path>/<config_name>.yaml``).
@@ -159,16 +135,14 @@ def recipe_help(recipe_file: str, *, config_path: str = "../conf", config_name: 
     primary = OmegaConf.to_container(OmegaConf.create(text), resolve=False)
     shown_primary = primary_file.relative_to(conf.parent) if primary_file.is_relative_to(conf.parent) else primary_file
 
-    defaults = _default_groups(primary)
-    reads = READS.get(stem)
-    groups = [(g, d) for g, d in defaults if g == "experiment" or reads is None or g in reads]
+    groups = _default_groups(primary)
     presets = _presets_for(stem, conf_dirs)
     has_experiment = any(g == "experiment" for g, _ in groups)
     groups = [(g, d) for g, d in groups if g != "experiment"]
     chosen = {g: d for g, d in groups if d is not None}
     chosen.update(_chosen(overrides, [g for g, _ in groups] + ["experiment"]))
 
-    out = [_recipe_paragraph(_raw_help(primary, "header", stem), stem), ""]
+    out = [_raw_help(primary, "header", stem), ""]
 
     command = f"python recipes/{stem}.py"
     out.append(f"Usage: {command} [GROUP=OPTION ...] [KEY=VALUE ...] [FLAGS]" if groups or presets

@@ -64,7 +64,7 @@ def make_dynamics_model(
 ) -> DynamicsModel:
     """A new (randomly initialised, train-mode) dynamics model for ``task``, configured as the recipes do.
 
-    Composes ``conf/config.yaml`` with ``model=<model> env=<task> model.preset=<preset>`` plus
+    Composes ``conf/train_dynamics.yaml`` with ``model=<model> env=<task> model.preset=<preset>`` plus
     ``overrides`` (Hydra override strings over the whole config, e.g. ``"model.width=0.125"``), checks it
     like a recipe's command line, and builds ``build_dynamics_model(cfg.model, cfg.env.max_height)``: the
     task's ``max_height`` (metres of the top depth class) and ``num_rotations`` come from
@@ -104,9 +104,9 @@ def _env_option(conf: Path, task: str) -> str:
 
 
 def _compose(model: str, task: str, preset: str, overrides: Sequence[str], conf: Path):
-    """The composed, checked ``conf/config.yaml`` (no ``hydra`` node) for :func:`make_dynamics_model`."""
-    if not (conf / "config.yaml").is_file():
-        raise ValueError(f"no Hydra configs at {conf} (config.yaml missing): make_dynamics_model reads the repository's "
+    """The composed, checked ``conf/train_dynamics.yaml`` (no ``hydra`` node) for :func:`make_dynamics_model`."""
+    if not (conf / "train_dynamics.yaml").is_file():
+        raise ValueError(f"no Hydra configs at {conf} (train_dynamics.yaml missing): make_dynamics_model reads the repository's "
                          "conf/; install ldm_rl from its repository (pip install -e .) or pass config_dir=")
     models = _options(conf, "model")
     if model not in models:
@@ -118,7 +118,7 @@ def _compose(model: str, task: str, preset: str, overrides: Sequence[str], conf:
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from ldm_rl.config_schema import ConfigError, _omegaconf_line, validate_config  # registers the configs' schema
+    from ldm_rl.config_schema import ConfigError, TrainDynamicsConfig, _omegaconf_line, validate_config  # registers the configs' schema
 
     composed = [f"model={model}", f"env={_env_option(conf, task)}", f"model.preset={preset}", *overrides]
     # called inside a Hydra app: put its state back afterwards (initialize_config_dir replaces the singleton)
@@ -126,8 +126,8 @@ def _compose(model: str, task: str, preset: str, overrides: Sequence[str], conf:
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(conf.resolve()), version_base="1.3", job_name="make_dynamics_model"):
-            cfg = compose(config_name="config", overrides=composed)
-        validate_config(cfg)
+            cfg = compose(config_name="train_dynamics", overrides=composed)
+        validate_config(cfg, TrainDynamicsConfig)
     except ConfigError as err:
         raise ValueError(f"make_dynamics_model: {err}") from None
     except Exception as err:  # Hydra / OmegaConf composition errors, in one line naming the override
