@@ -52,6 +52,15 @@ class PlotDependencyError(ImportError):
     """matplotlib (the ``plot`` extra) is not installed."""
 
 
+def _bins(num_rotations: int | None) -> int:
+    """R rotation bins: the given count, else the package default (``ldm_rl.geometry.NUM_ROTATIONS``)."""
+    if num_rotations:
+        return int(num_rotations)
+    from ldm_rl.geometry import NUM_ROTATIONS
+
+    return NUM_ROTATIONS
+
+
 def require_matplotlib() -> None:
     """Raise :class:`PlotDependencyError` (one line naming the extra) unless matplotlib imports."""
     try:
@@ -171,7 +180,7 @@ def _pixel_axes(ax) -> None:
 
 
 def plot_prediction_grid(before, predicted, true, actions, path: str | Path, *, max_height: float,
-                         is_pick=None, correct=None, num_rotations: int = 8, title: str | None = None,
+                         is_pick=None, correct=None, num_rotations: int | None = None, title: str | None = None,
                          dpi: float = 100):
     """Rows of dynamics predictions: before | predicted next | true next | |predicted − true|.
 
@@ -187,6 +196,7 @@ def plot_prediction_grid(before, predicted, true, actions, path: str | Path, *, 
     """
     from matplotlib.colors import PowerNorm
 
+    num_rotations = _bins(num_rotations)
     b, p, t = _images(before, "before"), _images(predicted, "predicted"), _images(true, "true")
     if not b.shape == p.shape == t.shape or b.shape[0] < 1:
         raise ValueError(f"before, predicted and true must share one [N>=1, H, W] shape, got {b.shape}, {p.shape}, {t.shape}")
@@ -263,7 +273,7 @@ def plot_success_rate(rows: Sequence[Mapping[str, float]], path: str | Path, *, 
 # ------------------------------------------------------------------------------ environments
 
 
-def plot_expert_strip(frames, actions, path: str | Path, *, max_height: float, num_rotations: int = 8,
+def plot_expert_strip(frames, actions, path: str | Path, *, max_height: float, num_rotations: int | None = None,
                       is_pick=None, title: str | None = None, panel_inches: float = 2.2, max_columns: int = 8,
                       dpi: float = 100):
     """One episode frame by frame: the heightmap before each step with its action, then the final state.
@@ -274,6 +284,7 @@ def plot_expert_strip(frames, actions, path: str | Path, *, max_height: float, n
         is_pick: ``[T]`` bool (hand empty before the step); default: even steps are picks.
         panel_inches: side of one frame; frames wrap into balanced rows of at most ``max_columns``.
     """
+    num_rotations = _bins(num_rotations)
     f = _images(frames, "frames")
     t = f.shape[0] - 1
     acts = _actions(actions, "actions", t) if t > 0 else np.zeros((0, 3), np.int64)
@@ -372,7 +383,7 @@ def plot_decision(heightmap, q_map, candidates, values, chosen, path: str | Path
             q = q.max(0)
         if q.shape != h.shape:
             raise ValueError(f"q_map must be [R, H, W] or [H, W] matching the heightmap {h.shape}, got {q.shape}")
-    num_rotations = int(num_rotations or 8)
+    num_rotations = _bins(num_rotations)
     action = _array(chosen, "chosen", 1, np.int64)
     if action.shape != (3,):
         raise ValueError(f"chosen must be [3] (row, col, rotation bin), got shape {action.shape}")
@@ -436,7 +447,7 @@ def plot_decision(heightmap, q_map, candidates, values, chosen, path: str | Path
 
 
 def plot_episodes_gif(steps: Sequence[Mapping[str, Any]], path: str | Path, *, max_height: float,
-                      num_rotations: int = 8, fps: float = 1.0, title: str | None = None, dpi: float = 80):
+                      num_rotations: int | None = None, fps: float = 1.0, title: str | None = None, dpi: float = 80):
     """A GIF, one frame per step: before (action drawn) | predicted next | real next heightmap.
 
     ``steps``: plain rows, one per step, in order, with ``heightmap`` and ``next_heightmap`` (``[H, W]``
@@ -448,6 +459,7 @@ def plot_episodes_gif(steps: Sequence[Mapping[str, Any]], path: str | Path, *, m
     require_matplotlib()
     from matplotlib.animation import PillowWriter
 
+    num_rotations = _bins(num_rotations)
     if not steps:
         raise ValueError("steps is empty: nothing to animate")
     if not fps > 0:

@@ -371,3 +371,12 @@ def test_the_planner_choices_are_the_registered_planners():
     rule = next(f for f in config_schema.dataclasses.fields(config_schema.PlannerConfig) if f.name == "name")
     assert set(rule.metadata["rule"].choices) == set(PLANNERS)
     assert {OmegaConf.load(p).name for p in (CONF / "planner").glob("*.yaml")} == set(PLANNERS)
+
+
+def test_the_schema_default_rotation_count_is_the_packages():
+    """R is written in ldm_rl.geometry (code) and in the schema's env default (configs; the schema stays
+    torch-free): the two agree."""
+    from ldm_rl import geometry
+
+    field = next(f for f in config_schema.dataclasses.fields(config_schema.EnvConfig) if f.name == "num_rotations")
+    assert field.default == geometry.NUM_ROTATIONS

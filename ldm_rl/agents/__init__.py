@@ -104,12 +104,13 @@ def _required(agent_cfg: Mapping[str, Any], name: str, *keys: str) -> list:
 
 def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
     """The Q FCN of ``cfg.agent`` (preset, q_width) on the input quantisation of ``cfg.model``."""
+    from ldm_rl.geometry import NUM_ROTATIONS
     from ldm_rl.models.q_fcn import build_q_network
 
     preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
     model = cfg["model"]
     return build_q_network(preset, max_height=float(max_height), num_classes=int(model.get("num_depth_classes", 21)),
-                           num_rotations=int(model.get("num_rotations", 8)), width=agent_cfg.get("q_width"),
+                           num_rotations=int(model.get("num_rotations", NUM_ROTATIONS)), width=agent_cfg.get("q_width"),
                            frame_margin=int(agent_cfg.get("q_frame_margin") or 0))
 
 

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from ldm_rl.geometry import NUM_ROTATIONS
 from ldm_rl.run.outputs import atomic_path
 
 __all__ = ["collect_demos", "save_demos", "load_demos", "episodes_to_tensordict", "DemoDataError", "FORMAT_VERSION"]
@@ -149,7 +150,7 @@ def collect_demos(
     metadata = {
         "env_id": env_id,
         "env_kwargs": kwargs,
-        "num_rotations": int(kwargs.get("num_rotations", 8)),
+        "num_rotations": int(kwargs.get("num_rotations", NUM_ROTATIONS)),
         "max_height": float(env_cfg.get("max_height", type(env).max_height)),
         "procedure": procedure,
         "noise": {"position": noise.position, "random_action_prob": noise.random_action_prob},

@@ -85,7 +85,7 @@ class PickPlaceEnv(gym.Env):
         num_objects: int,
         *,
         max_steps: int | None = None,
-        num_rotations: int = 8,
+        num_rotations: int = geometry.NUM_ROTATIONS,
         render_mode: str | None = None,
         expert_noise: ExpertNoise | dict | None = None,
         workspace: geometry.Workspace | None = None,

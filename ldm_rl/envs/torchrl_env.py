@@ -97,7 +97,7 @@ def env_kwargs_from_config(cfg: Mapping[str, Any]) -> tuple[str, dict]:
     kwargs = {
         "num_objects": cfg.get("num_objects"),
         "max_steps": cfg.get("max_steps"),
-        "num_rotations": cfg.get("num_rotations", 8),
+        "num_rotations": cfg.get("num_rotations"),  # absent: the env's default
     }
     return cfg["id"], {k: v for k, v in kwargs.items() if v is not None}
 

@@ -135,7 +135,7 @@ class DynamicsModel(nn.Module):
         frame: str = "local",
         crop_size: int = 64,
         max_height: float,
-        num_rotations: int = 8,
+        num_rotations: int = geometry.NUM_ROTATIONS,
         hand_rule: HandStateRule = HandStateRule(),
         hand_crop_mode: str = "bilinear",
         action_sigma: float = 2.0,

@@ -8,6 +8,7 @@ import os
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from ldm_rl.geometry import NUM_ROTATIONS
 from ldm_rl.models.blocks import count_parameters
 from ldm_rl.world_model.core import DynamicsModel, HandStateRule
 
@@ -47,7 +48,7 @@ def build_dynamics_model(cfg: Mapping[str, Any], max_height: float):
         frame="global" if name == "naive" else "local",
         crop_size=int(cfg.get("crop_size", 64)),
         max_height=float(max_height),
-        num_rotations=int(cfg.get("num_rotations", 8)),
+        num_rotations=int(cfg.get("num_rotations", NUM_ROTATIONS)),
         hand_rule=rule,
         hand_crop_mode=cfg.get("hand_crop_mode", "bilinear"),
         action_sigma=float(cfg.get("action_sigma", 2.0)),

@@ -56,7 +56,7 @@ class MetricSettings:
 
     max_height: float
     num_classes: int = 21
-    num_rotations: int = 8
+    num_rotations: int = geometry.NUM_ROTATIONS
     region_size: int = 64
     iou_threshold: float = 0.75
     height_tolerance: float = 1.0
