@@ -5,6 +5,7 @@ and lite presets.
     python benchmarks/bench_policy.py --training-step            # stacking_lite env steps, per phase, per lever
     python benchmarks/bench_policy.py                            # decision/update: both presets, 1 and 2 threads
     python benchmarks/bench_policy.py --presets lite --threads 1 --repeats 5
+    python benchmarks/bench_policy.py --planners --presets lite        # one decision per planner option, 1 thread
 
 A training env step (``--training-step``) is what ``recipes/train_policy.py`` does per step: the exploring
 planner's decision on the real PyBullet env, the env step, and ``schedule.updates_per_step`` agent updates
@@ -40,6 +41,7 @@ from ldm_rl.models.q_fcn import build_q_network
 from ldm_rl.models.v_cnn import build_value_network
 from ldm_rl.objectives import LDMLoss, LookaheadLoss
 from ldm_rl.planning.planner import LookaheadPlanner
+from ldm_rl.planning.tree_planner import TreePlanner
 from ldm_rl.torch_utils import make_adam
 from ldm_rl.world_model import build_dynamics_model
 
@@ -223,9 +225,42 @@ def training_step_table(levers: list[str], steps: int, warmup: int) -> None:
               + f" | **{r['total']:.3f}** | {r['first']:.2f} | {r['hit_rate']:.2f} |")
 
 
+PLANNER_OPTIONS = (  # (label, planner class, keyword arguments beside the shared ones)
+    ("one-step (the paper)", LookaheadPlanner, {}),
+    ("one-step, V − λ·H", LookaheadPlanner, {"uncertainty_penalty": 0.25}),
+    ("tree depth 2, K = 1", TreePlanner, {"depth": 2, "branching": 1, "gamma": 0.9}),
+    ("tree depth 2, K = 3", TreePlanner, {"depth": 2, "branching": 3, "gamma": 0.9}),
+    ("tree depth 3, K = 3", TreePlanner, {"depth": 3, "branching": 3, "gamma": 0.9}),
+)
+
+
+def planner_table(presets: list[str], candidates: int, repeats: int) -> None:
+    """One greedy decision for one state per planner option (one thread), its cost against the paper's."""
+    torch.set_num_threads(1)
+    state = TensorDict(scenes(1), batch_size=[1])
+    print("\n| preset | planner | first (warm-up) | best | median | × one-step |")
+    print("|---|---|---|---|---|---|")
+    for preset in presets:
+        planner, *_ = build(preset, candidates, candidates)
+        nets = (planner.q_network, planner.dynamics, planner.value_network)
+        base = None
+        for label, cls, kwargs in PLANNER_OPTIONS:
+            option = cls(*nets, num_candidates=candidates, tau=0.05, write_action_value=False, **kwargs)
+
+            def decide():
+                with set_exploration_type(ExplorationType.DETERMINISTIC):
+                    option(state.clone())
+
+            first, best, median = timed(decide, repeats)
+            base = median if base is None else base
+            print(f"| {preset} | {label} (N = {candidates}) | {first:.3f} s | {best:.3f} s | {median:.3f} s | "
+                  f"{median / base:.1f} |", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--training-step", action="store_true", help="time stacking_lite training env steps by phase")
+    parser.add_argument("--planners", action="store_true", help="time one decision of each planner option (1 thread)")
     parser.add_argument("--levers", nargs="+", default=[
         "agent.bootstrap_cache=0,schedule.updates_per_step=1", "schedule.updates_per_step=1", ""],
         help="comma-separated Hydra overrides per setting ('' = the preset as shipped)")
@@ -242,6 +277,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.training_step:
         training_step_table(args.levers, args.steps, args.warmup)
+        return
+    if args.planners:
+        planner_table(args.presets, args.candidates, args.repeats)
         return
 
     rows = []

@@ -377,6 +377,8 @@ class AgentConfig:
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="Q/V size; null = model.preset")
     q_width: Optional[float] = spec(None, gt=0, le=4, doc="Q channel multiplier override")
     q_frame_margin: int = spec(0, ge=0, lt=32, doc="pixels at each Q gripper frame's edge never proposed (0 = none)")
+    q_architecture: str = spec("fcn", choices=("fcn", "equivariant"),
+                               doc="Q network: QFCN (rotated scenes) | C_2R-equivariant e2cnn net (extra [equivariant])")
     value_width: Optional[float] = spec(None, gt=0, le=4, doc="V channel multiplier override")
     gamma: float = spec(ge=0, le=1, doc="discount of the targets")
     num_target_candidates: int = spec(ge=1, doc="N of the V target's max")
@@ -398,6 +400,7 @@ class AgentConfig:
                                 "(0 = off)")
     value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns"),
                                              doc="ldm: V fitted on next states turned by random quarter turns")
+    target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -422,6 +425,11 @@ class AgentConfig:
         for key in ("autocast", "value_augmentation"):
             if node.name != "ldm" and node.get(key) is not None:
                 found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
+        if node.name == "rs" and node.get("q_architecture", "fcn") != "fcn":
+            found.append(f"{prefix}q_architecture={node.q_architecture} is set but agent=rs builds no Q network")
+        if node.name != "ldm" and node.target_uncertainty_penalty:
+            found.append(f"{prefix}target_uncertainty_penalty={_show(node.target_uncertainty_penalty)} is set but "
+                         f"only agent=ldm uses it (agent.name={node.name}); set it to 0")
         cache = node.get("bootstrap_cache", 0)
         if cache and node.name != "ldm":
             found.append(f"{prefix}bootstrap_cache={cache} is set but only agent=ldm caches its bootstraps "
@@ -441,7 +449,7 @@ class PlannerConfig:
     """``conf/planner/*.yaml``: the LDM agent's planner (``name``: one of ``ldm_rl.agents.PLANNERS``); the
     baselines read ``tau`` (FC-DQN, Dyna-Q) or ``num_candidates``, ``tau_value``, ``chunk_size`` (RS)."""
 
-    name: str = spec("diverse", choices=("diverse",), doc="the planner (ldm_rl.agents.PLANNERS)")
+    name: str = spec("diverse", choices=("diverse", "tree"), doc="the planner (ldm_rl.agents.PLANNERS)")
     num_candidates: int = spec(ge=1, doc="N proposals per decision")
     proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode while exploring")
     greedy_proposal: str = spec(choices=("softmax", "argmax"), doc="proposal mode under DETERMINISTIC")
@@ -454,11 +462,28 @@ class PlannerConfig:
     tau_value: Any = MISSING
     chunk_size: int = spec(64, ge=1, doc="state-candidate pairs per LDM/V pass")
     autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="autocast of the Q map and LDM predictions")
+    uncertainty_penalty: float = spec(0.0, ge=0.0, doc="λ of the score V − λ·H (H: the LDM's pixel entropy, nats)")
+    # planner=tree only (conf/planner/tree.yaml sets them; null elsewhere)
+    depth: Optional[int] = spec(None, ge=1, doc="primitives looked ahead (tree)")
+    branching: Optional[int] = spec(None, ge=1, doc="candidates expanded per node (tree)")
+    gamma: Optional[float] = spec(None, ge=0.0, le=1.0, doc="discount of the backed-up scores (tree; the agent's γ)")
+    terminal_reward: Optional[float] = spec(None, gt=0.0, doc="a predicted reward above it ends a branch (tree)")
+
+    TREE_KEYS = ("depth", "branching", "gamma", "terminal_reward")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = [_schedule_problem(node[key], prefix + key, positive=key in ("tau", "tau_value"))
                  for key in ("tau", "beta", "sigma", "sigma_rot", "tau_value")]
+        if node.name != "tree":
+            found += [f"{prefix}{key}={_show(node[key])} is read by planner=tree only (got planner={node.name})"
+                      for key in PlannerConfig.TREE_KEYS if node[key] is not None]
+        else:
+            found += [f"{prefix}{key} is missing: planner=tree needs it (conf/planner/tree.yaml)"
+                      for key in PlannerConfig.TREE_KEYS if node[key] is None]
+            if node.branching is not None and node.branching > node.num_candidates:
+                found.append(f"{prefix}branching={node.branching} is out of range: must be <= "
+                             f"{prefix}num_candidates ({node.num_candidates})")
         return [problem for problem in found if problem]
 
 
@@ -549,6 +574,18 @@ class RenderConfig:
 
 
 @dataclass
+class PlannerOverrides:
+    """``evaluate.yaml``'s ``planner``: keys set over the checkpoint's planner (null = the checkpoint's)."""
+
+    name: Optional[str] = spec(None, choices=(None, "diverse", "tree"), doc="the planner")
+    uncertainty_penalty: Optional[float] = spec(None, ge=0.0, doc="λ of V − λ·H")
+    depth: Optional[int] = spec(None, ge=1, doc="tree: primitives looked ahead")
+    branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")
+    terminal_reward: Optional[float] = spec(None, gt=0.0, doc="tree: a predicted reward above it ends a branch")
+    gamma: Optional[float] = spec(None, ge=0.0, le=1.0, doc="tree: discount (null = the agent's)")
+
+
+@dataclass
 class EvaluateConfig(RunSettings):
     """``conf/evaluate.yaml``: ``recipes/evaluate.py``."""
 
@@ -559,6 +596,7 @@ class EvaluateConfig(RunSettings):
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="the preset the checkpoint must hold")
     progress: bool = True
     render: RenderConfig = group(RenderConfig)
+    planner: PlannerOverrides = group(PlannerOverrides)
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:

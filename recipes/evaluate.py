@@ -3,6 +3,7 @@
     python recipes/evaluate.py checkpoint=outputs/<date>/<time>/checkpoint.pt                 # 100 episodes
     python recipes/evaluate.py checkpoint=... num_objects=4          # a 3-block agent on 4 blocks (Table 2)
     python recipes/evaluate.py -m checkpoint=... num_objects=4,5
+    python recipes/evaluate.py checkpoint=... planner.name=tree            # the same weights, 2 steps ahead
 
 Rebuilds the agent from the configuration stored in the checkpoint, plays ``episodes`` episodes under
 ``ExplorationType.DETERMINISTIC`` and logs the success rate with a 95 % Wilson interval; writes
@@ -66,7 +67,8 @@ def evaluate(cfg: DictConfig) -> dict:
     seed_everything(int(cfg.seed))
     save_resolved_config(cfg, hydra_output_dir())
     path = hydra.utils.to_absolute_path(str(cfg.checkpoint))
-    agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device))
+    planner = {key: value for key, value in cfg.planner.items() if value is not None}
+    agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device), planner=planner)
     env_cfg = dict(train_cfg["env"])
     for key in ("num_objects", "max_steps"):
         if cfg[key] is not None:
@@ -80,6 +82,8 @@ def evaluate(cfg: DictConfig) -> dict:
                              on_episode=on_episode)
     summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name, **result.as_dict()}
+    if planner:
+        summary["planner"] = planner
     if recorded:
         summary["pictures"] = render_episodes(recorded, agent, cfg, hydra_output_dir(), max_height=float(env_cfg["max_height"]),
                                               num_rotations=int(env_cfg["num_rotations"]),

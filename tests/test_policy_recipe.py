@@ -105,7 +105,7 @@ def test_the_planner_is_chosen_by_name_and_configs_without_the_name_get_the_pape
     assert cfg["planner"]["name"] == "diverse"
     old = {**cfg, "planner": {k: v for k, v in cfg["planner"].items() if k != "name"}}  # a checkpoint's config before the key
     assert type(build_agent(old, 0.25).planner) is LookaheadPlanner
-    with pytest.raises(ValueError, match=r"planner.name must be one of \['diverse'\], got 'beam'"):
+    with pytest.raises(ValueError, match=r"planner.name must be one of \['diverse', 'tree'\], got 'beam'"):
         build_agent({**cfg, "planner": {**cfg["planner"], "name": "beam"}}, 0.25)
 
 

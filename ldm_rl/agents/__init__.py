@@ -29,17 +29,30 @@ def _diverse_planner():
     return LookaheadPlanner
 
 
+def _tree_planner():
+    from ldm_rl.planning.tree_planner import TreePlanner
+
+    return TreePlanner
+
+
 # ``cfg.planner.name`` -> a function returning the LDM agent's planner class, built as
 # ``cls(q_network, dynamics, value_network, **cfg.planner without name)`` (a TensorDictModule writing ``action``)
-PLANNERS: dict[str, Callable[[], type]] = {"diverse": _diverse_planner}
+PLANNERS: dict[str, Callable[[], type]] = {"diverse": _diverse_planner, "tree": _tree_planner}
 
 
-def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_network):
-    """The planner named by ``planner.name`` (configs written before the key existed: ``diverse``)."""
+def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_network, *, gamma: float):
+    """The planner named by ``planner.name`` (configs written before the key existed: ``diverse``); a planner
+    that backs up returns (``tree``) gets the agent's ``gamma`` unless its config sets one."""
     kwargs = _plain(planner_cfg)
     name = kwargs.pop("name", "diverse")
     if name not in PLANNERS:
         raise ValueError(f"planner.name must be one of {sorted(PLANNERS)}, got {name!r}")
+    if name == "tree":
+        kwargs["gamma"] = gamma if kwargs.get("gamma") is None else kwargs["gamma"]
+    else:  # the schema gives every planner the tree's keys (null); the others do not take them
+        from ldm_rl.planning.tree_planner import TREE_KEYS
+
+        kwargs = {key: value for key, value in kwargs.items() if key not in TREE_KEYS}
     return PLANNERS[name]()(q_network, dynamics, value_network, **kwargs)
 
 
@@ -60,9 +73,10 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
     common = {"max_height": float(max_height), "num_classes": dynamics.num_classes}
     q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"),
-                                frame_margin=int(agent_cfg.get("q_frame_margin") or 0), **common)
+                                frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
+                                architecture=str(agent_cfg.get("q_architecture") or "fcn"), **common)
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"), **common)
-    planner = _ldm_planner(cfg["planner"], q_network, dynamics, value_network)
+    planner = _ldm_planner(cfg["planner"], q_network, dynamics, value_network, gamma=float(agent_cfg["gamma"]))
     loss = LookaheadLoss(
         q_network, dynamics, value_network,
         gamma=float(agent_cfg["gamma"]),
@@ -76,6 +90,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)),
         bootstrap_cache=int(agent_cfg.get("bootstrap_cache") or 0),
         value_augmentation=agent_cfg.get("value_augmentation"),
+        target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
     )
     loss_cfg = _plain(cfg["loss"])
     class_weights = loss_cfg.get("class_weights")
@@ -103,7 +118,7 @@ def _required(agent_cfg: Mapping[str, Any], name: str, *keys: str) -> list:
 
 
 def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
-    """The Q FCN of ``cfg.agent`` (preset, q_width) on the input quantisation of ``cfg.model``."""
+    """The Q FCN of ``cfg.agent`` (preset, q_width, q_architecture) on the input quantisation of ``cfg.model``."""
     from ldm_rl.geometry import NUM_ROTATIONS
     from ldm_rl.models.q_fcn import build_q_network
 
@@ -111,7 +126,8 @@ def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
     model = cfg["model"]
     return build_q_network(preset, max_height=float(max_height), num_classes=int(model.get("num_depth_classes", 21)),
                            num_rotations=int(model.get("num_rotations", NUM_ROTATIONS)), width=agent_cfg.get("q_width"),
-                           frame_margin=int(agent_cfg.get("q_frame_margin") or 0))
+                           frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
+                           architecture=str(agent_cfg.get("q_architecture") or "fcn"))
 
 
 def _model_and_value(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
@@ -212,16 +228,24 @@ def build_agent(cfg: Mapping[str, Any], max_height: float):
     return AGENTS[name](cfg, max_height)
 
 
-def load_agent(path, *, preset: str | None = None, device="cpu"):
+def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mapping[str, Any] | None = None):
     """Rebuild the agent saved by ``recipes/train_policy.py`` at ``path``; returns ``(agent, config)``.
 
-    ``preset``: when given, the checkpoint must hold that preset (one clear error otherwise).
+    ``preset``: when given, the checkpoint must hold that preset (one clear error otherwise). ``planner``:
+    keys set over the checkpoint's planner config (the LDM agent's weights planned another way, e.g.
+    ``{"name": "tree", "depth": 2}``; a tree planner's unset keys take :class:`~ldm_rl.planning.TreePlanner`'s
+    defaults and the agent's γ). The returned config holds the planner actually built.
     """
-    from ldm_rl.run.checkpoint import load_checkpoint
+    from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint
 
     expect = {"kind": "agent", **({"preset": preset} if preset is not None else {})}
     checkpoint = load_checkpoint(path, expect=expect, map_location=device)
     cfg = checkpoint.meta["config"]
+    if planner:
+        if cfg["agent"]["name"] != "ldm":
+            raise CheckpointError(f"planner overrides {dict(planner)} apply to the ldm agent's planner; {path} "
+                             f"holds agent {cfg['agent']['name']!r}")
+        cfg = {**cfg, "planner": {**cfg["planner"], **_plain(planner)}}
     agent = build_agent(cfg, float(cfg["env"]["max_height"])).to(device)
     agent.load_policy_state_dict(checkpoint.state["agent"])  # best_policy.pt holds no target copies
     return agent.eval(), cfg

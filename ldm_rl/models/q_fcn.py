@@ -56,9 +56,10 @@ from ldm_rl import geometry
 from ldm_rl.models.blocks import LEAKY_SLOPE, BasicBlock, check_height_images, encode_heights, scaled_channels
 from ldm_rl.models.compile import CompiledInference
 
-__all__ = ["QFCN", "Q_PRESETS", "build_q_network"]
+__all__ = ["QFCN", "Q_PRESETS", "Q_ARCHITECTURES", "build_q_network"]
 
 Q_PRESETS = {"paper": 1.0, "lite": 0.5}
+Q_ARCHITECTURES = ("fcn", "equivariant")  # build_q_network's choices (agent.q_architecture)
 
 _HAND_PAD = 64  # the in-hand image is zero-padded to 64×64 before its encoder
 
@@ -354,8 +355,18 @@ def build_q_network(
     num_rotations: int = geometry.NUM_ROTATIONS,
     width: float | None = None,
     frame_margin: int = 0,
-) -> QFCN:
-    """A :class:`QFCN` at a preset width (``Q_PRESETS``); ``width`` overrides the preset's."""
+    architecture: str = "fcn",
+) -> nn.Module:
+    """A Q network at a preset width (``Q_PRESETS``); ``width`` overrides the preset's. ``architecture``
+    (``Q_ARCHITECTURES``, ``agent.q_architecture``): ``"fcn"`` a :class:`QFCN`, ``"equivariant"`` an
+    :class:`~ldm_rl.models.equivariant_q.EquivariantQFCN` (the same interface; needs the ``equivariant`` extra)."""
     if preset not in Q_PRESETS:
         raise ValueError(f"unknown Q network preset {preset!r}; expected one of {sorted(Q_PRESETS)}")
-    return QFCN(max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width, frame_margin)
+    if architecture not in Q_ARCHITECTURES:
+        raise ValueError(f"unknown Q architecture {architecture!r}; expected one of {list(Q_ARCHITECTURES)}")
+    args = (max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width, frame_margin)
+    if architecture == "equivariant":
+        from ldm_rl.models.equivariant_q import EquivariantQFCN  # raises MissingExtraError without e2cnn
+
+        return EquivariantQFCN(*args)
+    return QFCN(*args)

@@ -69,6 +69,9 @@ class LookaheadLoss(TransitionLoss):
             task here rewards only on termination, with a reward in [0, 1], so returns lie in [0, 1]: the
             clamp stops the max over predicted states (amplified by 1/(1−γ)) from feeding on itself
             (measured: y_V 0.9 → 3.6 within 200 updates without it).
+        target_uncertainty_penalty: λ ≥ 0: the target's max over ``Ā_N(s')`` scores each proposal
+            ``V⁻(f⁻(s', a')) − λ·H⁻(s', a')``, ``H⁻`` the target LDM's mean pixel entropy (nats; with
+            ``double_value`` the online choice is penalised alike). 0 = the paper; not in the paper.
         double_value: choose the target candidate with the online V, score it with the target V.
         q_target: ``"max"`` (the paper: ``r + γ max Q⁻(s')``) or ``"lookahead"`` (``y_Q = y_V``).
         return_lower_bound: raise both targets to the batch's ``return_to_go`` where it is higher
@@ -120,8 +123,14 @@ class LookaheadLoss(TransitionLoss):
         return_lower_bound: bool = False,
         bootstrap_cache: int = 0,
         value_augmentation: str | None = None,
+        target_uncertainty_penalty: float = 0.0,
     ) -> None:
         super().__init__()
+        if isinstance(target_uncertainty_penalty, bool) or not isinstance(target_uncertainty_penalty, (int, float)) \
+                or not target_uncertainty_penalty >= 0:
+            raise ValueError(f"target_uncertainty_penalty must be a number >= 0 (V units per nat), "
+                             f"got {target_uncertainty_penalty!r}")
+        self.target_uncertainty_penalty = float(target_uncertainty_penalty)
         if value_augmentation not in VALUE_AUGMENTATIONS:
             raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {value_augmentation!r}")
         self.value_augmentation = value_augmentation
@@ -187,7 +196,10 @@ class LookaheadLoss(TransitionLoss):
             q_next[rows] = boot["q_max"]
             scores = boot["target_values"]
             if self.double_value:  # (target V, online V) of each predicted state: [b, N, 2]
-                scores = torch.stack((scores, self._online_values(boot)), -1)
+                online = self._online_values(boot)
+                if self.target_uncertainty_penalty:
+                    online = online - self.target_uncertainty_penalty * boot["entropy"]
+                scores = torch.stack((scores, online), -1)
             if self.target_range is not None:  # a state's value is a return too: bootstrap from values in range
                 scores, q_next = scores.clamp(*self.target_range), q_next.clamp(*self.target_range)
             if self.double_value:
@@ -203,8 +215,8 @@ class LookaheadLoss(TransitionLoss):
 
     def _bootstrap(self, index, heightmap, in_hand, holding) -> dict[str, torch.Tensor]:
         """What the target networks say about the next states ``[b]``, from the cache where it has them:
-        ``q_max [b, 1]``, ``target_values [b, N]`` (target V of each proposal's predicted state) and, for
-        ``double_value``, the predicted states as depth classes ``next_heightmap [b, N, 1, H, W]`` and
+        ``q_max [b, 1]``, ``target_values [b, N]`` (target V of each proposal's predicted state, less
+        ``λ·entropy`` with a ``target_uncertainty_penalty``) and, for ``double_value``, the predicted states as depth classes ``next_heightmap [b, N, 1, H, W]`` and
         ``next_in_hand [b, N, 1, h, h]`` (uint8)."""
         cache = self.bootstrap_cache if index is not None else None
         if cache is None:
@@ -226,7 +238,8 @@ class LookaheadLoss(TransitionLoss):
         return out
 
     def _bootstrap_names(self) -> tuple[str, ...]:
-        return ("q_max", "target_values") + (("next_heightmap", "next_in_hand") if self.double_value else ())
+        names = ("q_max", "target_values") + (("next_heightmap", "next_in_hand") if self.double_value else ())
+        return names + (("entropy",) if self.double_value and self.target_uncertainty_penalty else ())
 
     def _fresh_bootstrap(self, heightmap, in_hand, holding) -> dict[str, torch.Tensor]:
         """:meth:`_bootstrap` computed with the target networks, in one batched pass."""
@@ -234,8 +247,13 @@ class LookaheadLoss(TransitionLoss):
             q_map = self.q_network(heightmap, in_hand, holding).float()  # float32 also under bf16 autocast
             candidates = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)
             result = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
-                               chunk_size=self.chunk_size, with_states=self.double_value)
+                               chunk_size=self.chunk_size, with_states=self.double_value,
+                               with_entropy=bool(self.target_uncertainty_penalty))
         out = {"q_max": q_map.flatten(1).amax(1, keepdim=True), "target_values": result.values.float()}
+        if self.target_uncertainty_penalty:
+            out["target_values"] = out["target_values"] - self.target_uncertainty_penalty * result.entropy
+            if self.double_value:  # the online choice among the same predictions is penalised alike
+                out["entropy"] = result.entropy
         if self.double_value:  # V reads heights as depth classes: uint8 classes are exact and 4x smaller
             classes = geometry.heights_to_classes
             out["next_heightmap"] = classes(result.next_heightmap, self.dynamics.max_height, self.dynamics.num_classes).to(torch.uint8)

@@ -27,6 +27,7 @@ class LookaheadResult(NamedTuple):
     next_holding: torch.Tensor  # [B, N] bool: predicted hand state after the action
     next_heightmap: torch.Tensor | None = None  # [B, N, 1, H, W] float32 m: predicted next scenes, when asked for
     next_in_hand: torch.Tensor | None = None  # [B, N, 1, h, h] float32 m: predicted in-hand images, when asked for
+    entropy: torch.Tensor | None = None  # [B, N] float32 nats: the LDM's mean pixel entropy in B_a, when asked for
 
 
 def lookahead(
@@ -41,6 +42,7 @@ def lookahead(
     with_reward: bool = False,
     dynamics_autocast: bool = False,
     with_states: bool = False,
+    with_entropy: bool = False,
 ) -> LookaheadResult:
     """Score ``candidates`` ``[B, N, 3]`` int64 (row, col, rot) of the states ``heightmap``
     ``[B, 1, 128, 128]`` f32 m, ``in_hand`` ``[B, 1, 24, 24]`` f32 m, ``holding`` ``[B, 1]`` bool.
@@ -50,7 +52,8 @@ def lookahead(
     weights, giving ``values`` ``[B, N, K]``; a plain callable runs in the mode its caller set) and offers ``value_and_reward`` when ``with_reward``.
     ``dynamics_autocast``: the LDM predicts under bf16 autocast (the paper preset's heavy convolutions;
     measured slower for the lite preset), V still scores in float32. ``with_states``: also return the
-    predicted next states (``next_heightmap``, ``next_in_hand``).
+    predicted next states (``next_heightmap``, ``next_in_hand``). ``with_entropy``: also return each
+    prediction's uncertainty (:func:`~ldm_rl.world_model.core.pixel_entropy` of the logits already computed).
     """
     if not torch.is_tensor(candidates) or candidates.dim() != 3 or candidates.shape[-1] != 3:
         shape = tuple(candidates.shape) if torch.is_tensor(candidates) else type(candidates).__name__
@@ -63,7 +66,7 @@ def lookahead(
     flat_actions = candidates.reshape(b * n, 3).long()
     owner = torch.arange(b, device=candidates.device).repeat_interleave(n)  # state row of each pair
     holding = holding.reshape(b, 1).bool()
-    values, rewards, next_holding, states = [], [], [], []
+    values, rewards, next_holding, states, entropies = [], [], [], [], []
     with eval_mode(*(m for m in (dynamics, value_network) if isinstance(m, nn.Module))):
         for start in range(0, b * n, chunk_size):
             rows = owner[start : start + chunk_size]
@@ -83,6 +86,8 @@ def lookahead(
             next_holding.append(pred.holding.reshape(-1))
             if with_states:
                 states.append((pred.heightmap.float(), pred.in_hand.float()))
+            if with_entropy:
+                entropies.append(pred.entropy())
     values = torch.cat(values)
     next_states = [torch.cat(part).reshape(b, n, *part[0].shape[1:]) for part in zip(*states)] if with_states else [None, None]
     return LookaheadResult(
@@ -90,6 +95,7 @@ def lookahead(
         torch.cat(rewards).reshape(b, n) if with_reward else None,
         torch.cat(next_holding).reshape(b, n),
         *next_states,
+        torch.cat(entropies).reshape(b, n) if with_entropy else None,
     )
 
 

@@ -10,6 +10,11 @@ One decision, batched over ``[*B]`` states (paper §3.3–3.4):
    ``ExplorationType.DETERMINISTIC`` (or MODE/MEAN); outside any exploration context TorchRL reports
    no type and the planner explores.
 
+Option (not in the paper, off by default): ``uncertainty_penalty`` λ > 0 scores each candidate by
+``V(f(s, a)) − λ·H(s, a)``, ``H`` the LDM's mean pixel entropy inside B_a
+(:func:`~ldm_rl.world_model.core.pixel_entropy`, from the logits the lookahead computes anyway): among
+outcomes V rates alike, the planner prefers those its model is sure of (paper §5).
+
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
 which the training loop advances with :meth:`LookaheadPlanner.set_step`. The greedy policy reads them at
@@ -55,9 +60,11 @@ class LookaheadPlanner(StatePolicy):
             V in float32 (the paper preset's decision ≈ 1.7× faster on an AVX-512-bf16 CPU; the lite
             preset is slower in bf16: measure before enabling).
         write_action_value: also write the ``[*B, R, H, W]`` Q map (``action_value``), 512 KB per state.
+        uncertainty_penalty: λ ≥ 0 (V units per nat): candidates are scored ``V − λ·H`` (0 = the paper).
 
     Reads ``heightmap``, ``in_hand``, ``holding``; writes ``action`` ``[*B, 3]``, ``candidate_actions``
-    ``[*B, N, 3]``, ``candidate_values`` ``[*B, N]``, ``state_value`` ``[*B, 1]`` and ``action_value``.
+    ``[*B, N, 3]``, ``candidate_values`` ``[*B, N]`` (``V(f(s, a))``), ``state_value`` ``[*B, 1]``,
+    ``action_value`` and, with λ > 0, ``candidate_entropy`` ``[*B, N]`` (nats).
     """
 
     def __init__(
@@ -78,8 +85,13 @@ class LookaheadPlanner(StatePolicy):
         chunk_size: int = 64,
         autocast: str | None = None,
         write_action_value: bool = True,
+        uncertainty_penalty: float = 0.0,
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
+        if isinstance(uncertainty_penalty, bool) or not isinstance(uncertainty_penalty, (int, float)) \
+                or not uncertainty_penalty >= 0:
+            raise ValueError(f"uncertainty_penalty must be a number >= 0 (V units per nat), got {uncertainty_penalty!r}")
+        self.uncertainty_penalty = float(uncertainty_penalty)
         actions = getattr(q_network, "num_rotations", 1) * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
         if not isinstance(num_candidates, int) or isinstance(num_candidates, bool) or not 1 <= num_candidates <= actions:
             raise ValueError(f"num_candidates must be an int in [1, {actions}] (the Q map's rotations x pixels), "
@@ -98,7 +110,7 @@ class LookaheadPlanner(StatePolicy):
         self.chunk_size, self.write_action_value = int(chunk_size), bool(write_action_value)
         self.out_keys = [keys.ACTION, keys.CANDIDATE_ACTIONS, keys.CANDIDATE_VALUES, keys.STATE_VALUE] + (
             [keys.ACTION_VALUE] if write_action_value else []
-        )
+        ) + ([keys.CANDIDATE_ENTROPY] if self.uncertainty_penalty else [])
 
     def hyperparameters(self, *, greedy: bool = False) -> dict[str, float]:
         """The schedules' values (τ, β, σ, σ_rot, τ_v) used when exploring (``greedy=False``, at :attr:`step`)
@@ -114,31 +126,52 @@ class LookaheadPlanner(StatePolicy):
                 raise ValueError(f"{key} must have shape {want} (batch size {tuple(tensordict.batch_size)} + "
                                  f"[1, {size}, {size}] metres), got {shape}")
 
+    def propose(self, heightmap, in_hand, holding, hp: dict[str, float], *, greedy: bool):
+        """``(Q map [B, R, H, W], candidates [B, N, 3])`` of flat states (networks already in eval mode)."""
+        with torch.autocast(heightmap.device.type, dtype=torch.bfloat16, enabled=self.autocast == "bf16"):
+            q_map = self.q_network(heightmap, in_hand, holding).float()
+        candidates = sample_candidates(
+            q_map, self.num_candidates, tau=hp["tau"], beta=hp["beta"], sigma=hp["sigma"],
+            sigma_rot=hp["sigma_rot"], mode=self.greedy_proposal if greedy else self.proposal,
+        )
+        return q_map, candidates
+
+    def score(self, heightmap, in_hand, holding, candidates, **options):
+        """``(scores [B, N], lookahead result)``: ``V(f(s, a)) − λ·H(s, a)`` of ``candidates`` ``[B, N, 3]``;
+        ``options`` go to :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``)."""
+        result = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
+                           chunk_size=self.chunk_size, dynamics_autocast=self.autocast == "bf16",
+                           with_entropy=bool(self.uncertainty_penalty), **options)
+        scores = result.values
+        if self.uncertainty_penalty:
+            scores = scores - self.uncertainty_penalty * result.entropy
+        return scores, result
+
+    @staticmethod
+    def choose(scores: torch.Tensor, hp: dict[str, float], *, greedy: bool) -> torch.Tensor:
+        """``[B]`` index of the chosen candidate: the best score (first on ties) or a draw from softmax(score/τ_v)."""
+        if greedy:
+            return scores.argmax(-1)
+        return torch.multinomial(torch.softmax(scores / hp["tau_value"], -1), 1).squeeze(-1)
+
     def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
-        """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]}``."""
+        """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]
+        [, candidate_entropy]}``."""
         hp = self.hyperparameters(greedy=greedy)
         with eval_mode(self.q_network, self.dynamics, self.value_network):
-            bf16 = self.autocast == "bf16"
-            with torch.autocast(heightmap.device.type, dtype=torch.bfloat16, enabled=bf16):
-                q_map = self.q_network(heightmap, in_hand, holding).float()
-            candidates = sample_candidates(
-                q_map, self.num_candidates, tau=hp["tau"], beta=hp["beta"], sigma=hp["sigma"],
-                sigma_rot=hp["sigma_rot"], mode=self.greedy_proposal if greedy else self.proposal,
-            )
-            values = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
-                               chunk_size=self.chunk_size, dynamics_autocast=bf16).values
-            if greedy:
-                choice = values.argmax(-1)
-            else:
-                choice = torch.multinomial(torch.softmax(values / hp["tau_value"], -1), 1).squeeze(-1)
+            q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy)
+            scores, result = self.score(heightmap, in_hand, holding, candidates)
+            choice = self.choose(scores, hp, greedy=greedy)
             action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
             state_value = self.value_network(heightmap, in_hand)
         out = {
             keys.ACTION: action,
             keys.CANDIDATE_ACTIONS: candidates,
-            keys.CANDIDATE_VALUES: values,
+            keys.CANDIDATE_VALUES: result.values,
             keys.STATE_VALUE: state_value,
         }
         if self.write_action_value:
             out[keys.ACTION_VALUE] = q_map
+        if self.uncertainty_penalty:
+            out[keys.CANDIDATE_ENTROPY] = result.entropy
         return out

@@ -13,15 +13,15 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ldm_rl.config_schema import SCHEMAS, ConfigError, EvaluateConfig, _omegaconf_line, config_differences, validate_config
-from ldm_rl.extras import MissingExtraError, require_logger_backend
+from ldm_rl.extras import MissingExtraError, require_equivariant_q, require_logger_backend
 
 __all__ = ["check_command_line", "machine_problems"]
 
 
 def machine_problems(cfg: DictConfig, *, checkpoint_kind: str | None = None) -> list[str]:
     """What a valid config asks of this machine and its files that they cannot give, found without torch: a
-    logger package that is not installed, a device without a driver, an ``evaluate.py`` checkpoint that is not
-    an agent's (``checkpoint_kind="agent"``: the kind the config's ``checkpoint`` must hold). Checked by :func:`check_command_line` before a run starts (not by :func:`validate_config`: a
+    logger package or e2cnn (``agent.q_architecture=equivariant``) that is not installed, a device without a
+    driver, an ``evaluate.py`` checkpoint that is not an agent's (``checkpoint_kind="agent"``: the kind the config's ``checkpoint`` must hold). Checked by :func:`check_command_line` before a run starts (not by :func:`validate_config`: a
     config stays valid on another machine)."""
     from ldm_rl.run.checkpoint import CheckpointError, read_checkpoint_meta  # light: no torch
 
@@ -30,6 +30,11 @@ def machine_problems(cfg: DictConfig, *, checkpoint_kind: str | None = None) -> 
     if backend is not None:
         try:
             require_logger_backend(str(backend))
+        except MissingExtraError as err:
+            found.append(str(err))
+    if OmegaConf.select(cfg, "agent.q_architecture") == "equivariant":
+        try:
+            require_equivariant_q()
         except MissingExtraError as err:
             found.append(str(err))
     device = OmegaConf.select(cfg, "device")

@@ -24,7 +24,8 @@ from torch import nn
 from ldm_rl import geometry
 from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet
 
-__all__ = ["HandStateRule", "DynamicsPrediction", "DynamicsModel", "validate_state_action", "HEIGHTMAP_SIZE", "HAND_SIZE"]
+__all__ = ["HandStateRule", "DynamicsPrediction", "DynamicsModel", "validate_state_action", "pixel_entropy",
+           "HEIGHTMAP_SIZE", "HAND_SIZE"]
 
 HEIGHTMAP_SIZE = geometry.HEIGHTMAP_SIZE
 HAND_SIZE = geometry.HAND_SIZE
@@ -53,6 +54,19 @@ class HandStateRule:
         return (self.count(before) > self.before_threshold) & (self.count(after) <= self.after_threshold)
 
 
+def pixel_entropy(logits: torch.Tensor) -> torch.Tensor:
+    """The model's predictive uncertainty: frame logits ``[*B, K, S, S]`` -> ``[*B]`` float32, nats.
+
+    The mean over the S² pixels of the frame (the crop B_a for the LDM) of each pixel's categorical entropy
+    ``−Σ_k p_k log p_k``, ``p = softmax(logits)`` over the K depth classes: 0 for a one-hot prediction,
+    ``log K`` for a uniform one. Computed in float32 whatever the logits' dtype.
+    """
+    if not torch.is_tensor(logits) or logits.dim() < 3:
+        raise _shape_error("logits", "a [*B, K, S, S] tensor of frame logits", logits)
+    log_p = torch.log_softmax(logits.float(), dim=-3)
+    return -(log_p.exp() * log_p).sum(-3).flatten(-2).mean(-1)
+
+
 class DynamicsPrediction(NamedTuple):
     """Predicted next state; leading dims ``*B`` as the inputs."""
 
@@ -60,6 +74,10 @@ class DynamicsPrediction(NamedTuple):
     in_hand: torch.Tensor  # [*B, 1, 24, 24] float32 metres
     holding: torch.Tensor  # [*B, 1] bool
     logits: torch.Tensor  # [*B, K, S, S] float32 frame logits
+
+    def entropy(self) -> torch.Tensor:
+        """``[*B]`` float32 nats: :func:`pixel_entropy` of the frame logits (mean pixel entropy inside B_a)."""
+        return pixel_entropy(self.logits)
 
 
 def channel_argmax(logits: torch.Tensor) -> torch.Tensor:

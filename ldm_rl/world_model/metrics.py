@@ -27,6 +27,12 @@ Definitions (all per transition; ``s`` = current state, ``s'`` = true next state
   - ``floor_sr``, the *no-change floor* overall: that same model, with the majority pick outcome as its
     hand state (the place rule does not read the hand state), over all transitions;
   - ``floor_l1_mm`` / ``floor_l1_region_mm``: L1 of the no-change model.
+* **Uncertainty** (when the per-transition metrics carry ``entropy``, the model's mean pixel entropy inside
+  B_a, :func:`~ldm_rl.world_model.core.pixel_entropy`): ``entropy_auroc`` is the AUROC of entropy as a
+  detector of a *wrong* prediction (the SR rule above): the probability that a wrong transition has a higher
+  entropy than a right one (ties count one half; 0.5 = no better than chance); ``entropy_auroc_pick`` /
+  ``_place`` the same within picks / places; ``entropy_right`` / ``entropy_wrong`` the mean entropies (nats).
+  A key is left out where it is undefined (no wrong, or no right, predictions among those transitions).
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ import torch
 
 from ldm_rl import geometry
 
-__all__ = ["MetricSettings", "action_region_mask", "height_l1", "pick_correct", "place_scores", "place_correct",
+__all__ = ["MetricSettings", "action_region_mask", "auroc", "height_l1", "pick_correct", "place_scores", "place_correct",
            "transition_metrics", "summarize", "floor_transition_metrics", "summarize_floors", "iou_key", "format_report"]
 
 
@@ -119,12 +125,13 @@ def place_correct(before: torch.Tensor, pred_next: torch.Tensor, true_next: torc
     return (iou >= threshold) & (diff <= settings.height_tolerance)
 
 
-def transition_metrics(pred_heightmap, pred_holding, batch, settings: MetricSettings) -> dict[str, torch.Tensor]:
+def transition_metrics(pred_heightmap, pred_holding, batch, settings: MetricSettings,
+                       entropy: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Per-transition metrics of a prediction for a TensorDict ``batch`` of real transitions.
 
     Returns [N] tensors: ``l1`` and ``l1_region`` (metres), ``correct`` (bool, pick or place rule),
     ``is_pick`` (bool), ``iou`` and ``class_error`` (the place rule's two scores; computed for every
-    transition, read for places only).
+    transition, read for places only) and, when given, the prediction's ``entropy`` ([N] nats).
     """
     heightmap, action = batch["heightmap"], batch["action"]
     true_next, true_holding = batch["next", "heightmap"], batch["next", "holding"]
@@ -132,7 +139,7 @@ def transition_metrics(pred_heightmap, pred_holding, batch, settings: MetricSett
     is_pick = ~batch["holding"].reshape(-1).bool()
     iou, class_error = place_scores(heightmap, pred_heightmap, true_next, settings)
     place_ok = (iou >= settings.iou_threshold) & (class_error <= settings.height_tolerance)
-    return {
+    out = {
         "l1": height_l1(pred_heightmap, true_next),
         "l1_region": height_l1(pred_heightmap, true_next, region),
         "correct": torch.where(is_pick, pick_correct(pred_holding, true_holding), place_ok),
@@ -140,6 +147,30 @@ def transition_metrics(pred_heightmap, pred_holding, batch, settings: MetricSett
         "iou": iou,
         "class_error": class_error,
     }
+    if entropy is not None:
+        out["entropy"] = entropy.reshape(-1).float()
+    return out
+
+
+def auroc(scores: torch.Tensor, labels: torch.Tensor) -> float:
+    """Area under the ROC curve of ``scores`` [N] as a detector of ``labels`` [N] bool (True = positive).
+
+    The Mann-Whitney form: the fraction of (positive, negative) pairs ranked right, ties counting one half
+    (average ranks). NaN when either class is empty.
+    """
+    scores, labels = scores.reshape(-1).double(), labels.reshape(-1).bool()
+    n_pos, n_neg = int(labels.sum()), int((~labels).sum())
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    order = scores.argsort()
+    sorted_scores = scores[order]
+    ranks = torch.empty_like(scores)
+    ranks[order] = torch.arange(1, scores.numel() + 1, dtype=scores.dtype)
+    # tied scores share the mean of their ranks
+    _, group, counts = torch.unique_consecutive(sorted_scores, return_inverse=True, return_counts=True)
+    first = torch.cumsum(counts, 0) - counts + 1
+    ranks[order] = (first + (counts - 1) / 2.0).double()[group]
+    return float((ranks[labels].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
 
 
 def _mean_where(values: torch.Tensor, mask: torch.Tensor) -> float:
@@ -163,6 +194,13 @@ def summarize(per_transition: dict[str, torch.Tensor], settings: MetricSettings 
         size_ok = per_transition["class_error"] <= settings.height_tolerance
         for t in settings.report_iou_thresholds:
             out[iou_key(t)] = _mean_where((per_transition["iou"] >= t) & size_ok, ~is_pick)
+    if "entropy" in per_transition:  # only what is defined: no NaN reaches a checkpoint's JSON meta
+        entropy, wrong = per_transition["entropy"], ~per_transition["correct"].bool()
+        scores = {"entropy_auroc": auroc(entropy, wrong),
+                  "entropy_auroc_pick": auroc(entropy[is_pick], wrong[is_pick]),
+                  "entropy_auroc_place": auroc(entropy[~is_pick], wrong[~is_pick]),
+                  "entropy_right": _mean_where(entropy, ~wrong), "entropy_wrong": _mean_where(entropy, wrong)}
+        out.update({key: value for key, value in scores.items() if value == value})
     return out
 
 
@@ -232,6 +270,12 @@ def format_report(metrics: dict, iou_threshold: float = 0.75) -> str:
              row(f"SR place (IoU >= {iou_threshold:g})", pct("sr_place"), pct("floor_sr_place"), "(no change, at any IoU)")]
     for key in sorted(k for k in metrics if k.startswith("sr_place_iou")):
         lines.append(row(f"SR place at IoU {int(key[len('sr_place_iou'):]) / 100:g}", pct(key)))
+    if "entropy_auroc" in metrics:
+        def auc(key: str) -> str:
+            return f"{metrics[key]:.3f}" if key in metrics else "–"
+
+        lines.append(row("entropy flags wrong: AUROC", auc("entropy_auroc"), "0.5",
+                         f"(picks {auc('entropy_auroc_pick')}, places {auc('entropy_auroc_place')}; chance)"))
     if "l1_mm" in metrics:
         floor_l1 = (f"{metrics['floor_l1_mm']:.2f} | {metrics['floor_l1_region_mm']:.2f}" if "floor_l1_mm" in metrics else "")
         lines.append(row("L1 per pixel, image | B_a (mm)", f"{metrics['l1_mm']:.2f} | {metrics['l1_region_mm']:.2f}", floor_l1,

@@ -101,7 +101,8 @@ def evaluate(model: DynamicsModel, data: TensorDictBase, settings: MetricSetting
 
     Returns (see ``ldm_rl.world_model.metrics``): ``l1_m`` / ``l1_mm`` / ``l1_region_m`` / ``l1_region_mm`` (per-pixel
     means), ``sr`` / ``sr_pick`` / ``sr_place`` (fractions), ``sr_place_iouXX`` per
-    ``settings.report_iou_thresholds``, and the floors of the same transitions: ``floor_sr`` /
+    ``settings.report_iou_thresholds``, ``entropy_auroc`` (``_pick`` / ``_place``) and ``entropy_right`` /
+    ``entropy_wrong`` (how well the model's pixel entropy flags its wrong predictions), and the floors of the same transitions: ``floor_sr`` /
     ``floor_sr_pick`` / ``floor_sr_place``, ``floor_pick_majority_success``, ``floor_l1_*``, ``n_pick`` / ``n_place``.
     """
     was_training = model.training
@@ -111,7 +112,7 @@ def evaluate(model: DynamicsModel, data: TensorDictBase, settings: MetricSetting
     for start in range(0, data.shape[0], batch_size):
         batch = data[start : start + batch_size]
         pred = model.predict(batch["heightmap"], batch["in_hand"], batch["holding"], batch["action"])
-        for key, value in transition_metrics(pred.heightmap, pred.holding, batch, settings).items():
+        for key, value in transition_metrics(pred.heightmap, pred.holding, batch, settings, pred.entropy()).items():
             parts.setdefault(key, []).append(value)
         for key, value in floor_transition_metrics(batch, settings).items():
             floor_parts.setdefault(key, []).append(value)

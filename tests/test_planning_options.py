@@ -1,0 +1,331 @@
+"""Beyond the paper: the LDM's predictive entropy (metric, lookahead, planner and target penalties) and the
+depth-d tree planner. Each option's defining behaviour, checked against a computation written out by hand."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from ldm_rl.objectives import LookaheadLoss
+from ldm_rl.planning.lookahead import lookahead
+from ldm_rl.planning.planner import LookaheadPlanner
+from ldm_rl.planning.sampling import sample_candidates
+from ldm_rl.planning.tree_planner import TreePlanner
+from ldm_rl.world_model import pixel_entropy
+from ldm_rl.world_model.metrics import MetricSettings, auroc
+from policy_helpers import MAX_HEIGHT, scenes, tiny_networks, transitions
+
+pytestmark = pytest.mark.filterwarnings("ignore:No target network updater has been associated:UserWarning")
+GREEDY = dict(num_candidates=5, tau=0.05, tau_value=0.1, proposal="argmax")
+
+
+@pytest.fixture(scope="module")
+def nets():
+    return tiny_networks(0)
+
+
+def batch(n=3, seed=0):
+    return TensorDict(scenes(n, seed), batch_size=[n])
+
+
+# ------------------------------------------------------------------------------------------- entropy
+
+
+def test_pixel_entropy_is_zero_for_one_hot_and_log_k_for_uniform_predictions():
+    k = 21
+    one_hot = torch.full((2, k, 8, 8), -1e4)
+    one_hot[:, 3] = 1e4
+    torch.testing.assert_close(pixel_entropy(one_hot), torch.zeros(2))
+    torch.testing.assert_close(pixel_entropy(torch.zeros(2, 3, k, 8, 8)), torch.full((2, 3), math.log(k)))
+    # the mean over pixels: half the frame uniform, half certain -> log K / 2
+    half = one_hot.clone()
+    half[:, :, :4] = 0.0
+    torch.testing.assert_close(pixel_entropy(half), torch.full((2,), math.log(k) / 2))
+    with pytest.raises(ValueError, match="logits must be a"):
+        pixel_entropy(torch.zeros(4, 4))
+
+
+def test_auroc_equals_the_pairwise_count_with_ties_as_halves():
+    g = torch.Generator().manual_seed(0)
+    scores = torch.randint(0, 6, (40,), generator=g).float()  # many ties
+    labels = torch.rand(40, generator=g) < 0.4
+    pos, neg = scores[labels], scores[~labels]
+    pairs = (pos[:, None] > neg[None, :]).float() + 0.5 * (pos[:, None] == neg[None, :]).float()
+    assert auroc(scores, labels) == pytest.approx(pairs.mean().item())
+    assert auroc(torch.arange(4.0), torch.tensor([False, False, True, True])) == 1.0
+    assert math.isnan(auroc(torch.arange(3.0), torch.zeros(3, dtype=torch.bool)))
+
+
+def test_lookahead_entropy_is_the_entropy_of_each_candidates_prediction(nets):
+    q, dynamics, value = nets
+    s = scenes(2)
+    candidates = torch.tensor([[[60, 60, 0], [30, 90, 3]], [[64, 64, 5], [100, 20, 1]]])
+    out = lookahead(dynamics, value, s["heightmap"], s["in_hand"], s["holding"], candidates, with_entropy=True, chunk_size=3)
+    with torch.no_grad():
+        pred = dynamics.eval().predict(s["heightmap"][:, None].expand(2, 2, 1, 128, 128),
+                                       s["in_hand"][:, None].expand(2, 2, 1, 24, 24), s["holding"][:, None].expand(2, 2, 1),
+                                       candidates)
+    torch.testing.assert_close(out.entropy, pred.entropy())
+    assert out.entropy.shape == (2, 2) and (out.entropy > 0).all() and (out.entropy <= math.log(21) + 1e-5).all()
+    assert lookahead(dynamics, value, s["heightmap"], s["in_hand"], s["holding"], candidates).entropy is None
+
+
+def test_held_out_metrics_report_how_well_entropy_flags_wrong_predictions(nets):
+    from ldm_rl.world_model.training import evaluate
+
+    _, dynamics, _ = nets
+    metrics = evaluate(dynamics, transitions(12), MetricSettings(max_height=MAX_HEIGHT))
+    assert 0.0 <= metrics["entropy_auroc"] <= 1.0  # random weights: right and wrong predictions both occur
+    assert {"entropy_right", "entropy_wrong"} <= set(metrics)
+    assert 0 < metrics["entropy_right"] <= math.log(21) + 1e-5
+
+
+def test_undefined_entropy_scores_are_left_out_so_metrics_stay_json():
+    import json
+
+    from ldm_rl.world_model.metrics import summarize
+
+    per = {"l1": torch.zeros(4), "l1_region": torch.zeros(4), "is_pick": torch.tensor([True, True, False, False]),
+           "correct": torch.tensor([True, True, False, True]), "entropy": torch.tensor([0.1, 0.2, 0.5, 0.3])}
+    out = summarize(per)
+    assert out["entropy_auroc"] == 1.0 and out["entropy_auroc_place"] == 1.0
+    assert "entropy_auroc_pick" not in out  # every pick right: undefined, not NaN
+    json.dumps(out, allow_nan=False)
+
+
+def test_the_uncertainty_penalty_scores_v_minus_lambda_entropy(nets):
+    q, dynamics, value = nets
+    plain = LookaheadPlanner(q, dynamics, value, **GREEDY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        reference = plain(batch())
+        for lam in (0.3, 1e6):
+            out = LookaheadPlanner(q, dynamics, value, uncertainty_penalty=lam, **GREEDY)(batch())
+            assert torch.equal(out["candidate_actions"], reference["candidate_actions"])
+            torch.testing.assert_close(out["candidate_values"], reference["candidate_values"])
+            best = (out["candidate_values"] - lam * out["candidate_entropy"]).argmax(-1)
+            assert torch.equal(out["action"], out["candidate_actions"][torch.arange(3), best])
+    # a huge λ: the most certain prediction wins whatever V says
+    assert torch.equal(best, out["candidate_entropy"].argmin(-1))
+    assert "candidate_entropy" not in reference.keys()
+    with pytest.raises(ValueError, match="uncertainty_penalty must be a number >= 0"):
+        LookaheadPlanner(q, dynamics, value, uncertainty_penalty=-0.1)
+
+
+def test_the_target_uncertainty_penalty_lowers_each_bootstrap_by_lambda_entropy():
+    q, dynamics, value = tiny_networks(0)
+    lam = 0.5
+    loss = LookaheadLoss(q, dynamics, value, gamma=0.9, num_target_candidates=3, chunk_size=5, target_range=None,
+                         target_uncertainty_penalty=lam)
+    data = transitions(4, terminated=torch.zeros(4, 1, dtype=torch.bool))
+    _, v_target = loss.targets(data)
+    nxt = [data["next", key] for key in ("heightmap", "in_hand", "holding")]
+    with torch.no_grad(), loss.target_networks():
+        q_map = loss.q_network.eval()(*nxt)
+        candidates = sample_candidates(q_map, 3, **loss.target_proposal)
+        out = lookahead(loss.dynamics, loss.value_network, *nxt, candidates, with_entropy=True)
+    want = data["next", "reward"] + 0.9 * (out.values - lam * out.entropy).amax(1, keepdim=True)
+    torch.testing.assert_close(v_target, want)
+    cached = LookaheadLoss(*tiny_networks(0), gamma=0.9, num_target_candidates=3, chunk_size=5, target_range=None,
+                           target_uncertainty_penalty=lam, bootstrap_cache=16, double_value=True)
+    data["index"] = torch.arange(4)
+    first, second = cached.targets(data), cached.targets(data)  # fresh, then from the cache (entropy kept)
+    for a, b in zip(first, second):
+        torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match="target_uncertainty_penalty must be a number >= 0"):
+        LookaheadLoss(*tiny_networks(0), target_uncertainty_penalty=-1.0)
+
+
+# ------------------------------------------------------------------------------------------- tree planner
+
+
+class ConstantValue(nn.Module):
+    """V ≡ ``value``, reward head ≡ ``reward``: every state alike."""
+
+    def __init__(self, value: float = 0.3, reward: float = 0.0) -> None:
+        super().__init__()
+        self.value, self.reward = value, reward
+
+    def forward(self, heightmap, in_hand):
+        return torch.full((heightmap.shape[0], 1), self.value)
+
+    def value_and_reward(self, heightmap, in_hand):
+        return self(heightmap, in_hand), torch.full((heightmap.shape[0], 1), self.reward)
+
+
+def test_depth_one_is_the_one_step_planner(nets):
+    q, dynamics, value = nets
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        one_step = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
+        tree = TreePlanner(q, dynamics, value, depth=1, gamma=0.9, **GREEDY)(batch())
+    for key in ("action", "candidate_actions", "candidate_values"):
+        assert torch.equal(tree[key], one_step[key])
+    torch.testing.assert_close(tree["candidate_scores"], one_step["candidate_values"])
+
+
+def test_branching_one_with_a_constant_value_picks_the_first_proposal(nets):
+    q, dynamics, _ = nets
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = TreePlanner(q, dynamics, ConstantValue(), depth=2, branching=1, gamma=0.9, **GREEDY)(batch())
+    assert torch.equal(out["action"], out["candidate_actions"][:, 0])  # Q's argmax proposal
+    assert torch.isfinite(out["candidate_scores"]).sum(-1).tolist() == [1, 1, 1]
+    torch.testing.assert_close(out["candidate_scores"][:, 0], torch.full((3,), 0.9 * 0.3))
+
+
+def test_depth_two_scores_are_the_backup_of_the_expanded_candidates_written_out(nets):
+    q, dynamics, value = nets
+    gamma, k = 0.8, 2
+    planner = TreePlanner(q, dynamics, value, depth=2, branching=k, gamma=gamma, terminal_reward=0.1, **GREEDY)
+    s = scenes(2, seed=3)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = planner(TensorDict(s, batch_size=[2]))
+    first = lookahead(dynamics, value, s["heightmap"], s["in_hand"], s["holding"], out["candidate_actions"],
+                      with_states=True, with_reward=True)
+    hp = planner.hyperparameters(greedy=True)
+    for row in range(2):  # one state and one expanded candidate at a time
+        expanded = first.values[row].sort(descending=True, stable=True).indices[:k]
+        assert set(torch.isfinite(out["candidate_scores"][row]).nonzero().view(-1).tolist()) == set(expanded.tolist())
+        for i in expanded.tolist():
+            state = (first.next_heightmap[row, i][None], first.next_in_hand[row, i][None],
+                     first.next_holding[row, i].view(1, 1))
+            with torch.no_grad():
+                q_map = q.eval()(*state)
+            proposals = sample_candidates(q_map, 5, beta=hp["beta"], sigma=hp["sigma"], sigma_rot=hp["sigma_rot"],
+                                          mode="argmax")
+            leaves = lookahead(dynamics, value, *state, proposals).values
+            reward = first.rewards[row, i]
+            want = reward + gamma * float(reward <= 0.1) * leaves.amax()
+            torch.testing.assert_close(out["candidate_scores"][row, i], want, rtol=1e-5, atol=1e-6)
+    best = out["candidate_scores"].argmax(-1)
+    assert torch.equal(out["action"], out["candidate_actions"][torch.arange(2), best])
+
+
+def test_a_predicted_success_ends_its_branch(nets):
+    q, dynamics, _ = nets
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = TreePlanner(q, dynamics, ConstantValue(value=0.9, reward=0.6), depth=3, branching=2, gamma=0.9,
+                          terminal_reward=0.1, **GREEDY)(batch())
+    finite = out["candidate_scores"][torch.isfinite(out["candidate_scores"])]
+    torch.testing.assert_close(finite, torch.full_like(finite, 0.6))  # the reward, no continuation
+
+
+def test_exploring_draws_only_among_the_expanded_candidates(nets):
+    q, dynamics, value = nets
+    torch.manual_seed(0)
+    planner = TreePlanner(q, dynamics, value, depth=2, branching=2, gamma=0.9, **{**GREEDY, "tau_value": 1e6})
+    td = batch(1)
+    chosen = set()
+    for _ in range(12):
+        out = planner(td.clone())
+        index = (out["candidate_actions"][0] == out["action"][0]).all(-1).nonzero().view(-1)[0]
+        assert torch.isfinite(out["candidate_scores"][0, index])
+        chosen.add(int(index))
+    assert len(chosen) == 2  # both expanded candidates, nothing else
+
+
+def test_tree_planner_bad_arguments_are_one_clear_error(nets):
+    q, dynamics, value = nets
+    for kwargs, message in (({"depth": 0}, "depth must be an int >= 1"),
+                            ({"branching": 6}, r"branching must be an int in \[1, num_candidates=5\]"),
+                            ({"gamma": 1.5}, r"gamma must be a number in \[0, 1\]"),
+                            ({"terminal_reward": 0}, "terminal_reward must be a number > 0")):
+        with pytest.raises(ValueError, match=message):
+            TreePlanner(q, dynamics, value, **{"gamma": 0.9, **GREEDY, **kwargs})
+    with pytest.raises(ValueError, match="has no value_and_reward"):
+        TreePlanner(q, dynamics, lambda h, i: h.new_zeros(h.shape[0], 1), gamma=0.9, **GREEDY)
+
+
+def test_env_rollout_with_the_tree_planner(nets):
+    from ldm_rl.envs import make_env
+
+    q, dynamics, value = nets
+    env = make_env("ldm_rl/BlockStacking-v0", num_objects=2, max_steps=2)
+    planner = TreePlanner(q, dynamics, value, depth=2, branching=2, gamma=0.9, uncertainty_penalty=0.1, **GREEDY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(2, planner)
+    assert rollout["candidate_scores"].shape == (rollout.shape[0], 5)
+    assert rollout["candidate_entropy"].shape == (rollout.shape[0], 5)
+    env.close()
+
+
+# ------------------------------------------------------------------------------------------- config
+
+
+def _composed(*overrides):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
+        composed = compose(config_name="train_policy", overrides=["experiment=smoke", *overrides])
+    composed.logger.exp_name = "run"
+    return composed, OmegaConf.to_container(composed, resolve=True)
+
+
+def test_planner_tree_is_chosen_by_config_with_the_agents_gamma():
+    from ldm_rl.agents import build_agent
+    from ldm_rl.config_schema import SCHEMAS, validate_config
+
+    composed, cfg = _composed("planner=tree", "planner.uncertainty_penalty=0.2", "agent.target_uncertainty_penalty=0.1")
+    validate_config(composed, SCHEMAS["train_policy"])
+    agent = build_agent(cfg, 0.25)
+    assert type(agent.planner) is TreePlanner
+    assert agent.planner.gamma == cfg["agent"]["gamma"] and agent.planner.uncertainty_penalty == 0.2
+    assert agent.loss.target_uncertainty_penalty == 0.1
+
+
+def test_the_schemas_null_tree_keys_do_not_reach_the_one_step_planner():
+    """The recipes compose over the schema, which gives every planner config the tree's keys as null."""
+    from ldm_rl.agents import build_agent
+
+    _, cfg = _composed()
+    cfg["planner"].update(depth=None, branching=None, gamma=None, terminal_reward=None)
+    assert type(build_agent(cfg, 0.25).planner) is LookaheadPlanner
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (("planner.depth=2",), r"planner.depth=2 is read by planner=tree only \(got planner=diverse\)"),
+    (("planner=tree", "planner.branching=11"), r"planner.branching=11 is out of range: must be <= planner.num_candidates"),
+    (("planner.uncertainty_penalty=-1",), "planner.uncertainty_penalty=-1"),
+    (("agent=fcdqn", "agent.target_uncertainty_penalty=0.1"), "only agent=ldm uses it"),
+])
+def test_option_misuse_is_one_clear_config_error(overrides, message):
+    from ldm_rl.config_schema import SCHEMAS, ConfigError, validate_config
+
+    composed, _ = _composed(*overrides)
+    with pytest.raises(ConfigError, match=message):
+        validate_config(composed, SCHEMAS["train_policy"])
+
+
+@pytest.mark.slow
+def test_smoke_run_with_both_options_then_evaluate_its_weights_with_the_tree_planner(tmp_path):
+    """CI smoke: a tiny training run with the tree planner and both entropy penalties, then recipes/evaluate.py
+    planning its weights with planner overrides (written into evaluation.json)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+
+    def run(script, *overrides):
+        proc = subprocess.run([sys.executable, str(root / "recipes" / script), *overrides], capture_output=True,
+                              text=True, env=env, cwd=tmp_path, timeout=900)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return proc
+
+    train = tmp_path / "train"
+    run("train_policy.py", "experiment=smoke", "planner=tree", "planner.depth=2", "planner.branching=2",
+        "planner.uncertainty_penalty=0.1", "agent.target_uncertainty_penalty=0.1", f"hydra.run.dir={train}")
+    final = json.loads((train / "final_metrics.json").read_text())
+    assert final["agent"] == "ldm" and final["episodes"] >= 2
+    run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
+        "planner.uncertainty_penalty=0.0", f"hydra.run.dir={tmp_path / 'eval'}")
+    result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
+    assert result["planner"] == {"name": "diverse", "uncertainty_penalty": 0.0} and result["episodes"] == 1
