@@ -42,3 +42,17 @@ def transitions(batch: int, seed: int = 0, terminated=None) -> TensorDict:
     return TensorDict({**now, "action": action,
                        "next": {**nxt, "reward": reward, "terminated": terminated, "truncated": torch.zeros_like(terminated),
                                 "done": terminated.clone()}}, batch_size=[batch])
+
+
+def q_states(n: int, seed: int = 0, max_layers: int = 4):
+    """Block scenes on a noisy floor ``[n, 1, 128, 128]`` m (up to ``max_layers`` 4 cm layers per block: 4 reaches
+    above the Q tests' max_height), random in-hand images ``[n, 1, 24, 24]`` m, holding alternating ``[n, 1]``."""
+    gen = torch.Generator().manual_seed(seed)
+    heights = torch.rand(n, 1, 128, 128, generator=gen) * 0.02
+    for i in range(n):
+        for _ in range(4):
+            r, c = torch.randint(4, 110, (2,), generator=gen).tolist()
+            h, w = torch.randint(6, 18, (2,), generator=gen).tolist()
+            heights[i, 0, r : r + h, c : c + w] += 0.04 * int(torch.randint(1, max_layers + 1, (1,), generator=gen))
+    in_hand = torch.rand(n, 1, 24, 24, generator=gen) * 0.08
+    return heights, in_hand, (torch.arange(n) % 2 == 1).unsqueeze(-1)

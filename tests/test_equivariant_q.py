@@ -25,6 +25,7 @@ from ldm_rl.extras import MissingExtraError
 from ldm_rl.models.blocks import count_parameters
 from ldm_rl.models.equivariant_q import EquivariantQFCN
 from ldm_rl.models.q_fcn import Q_ARCHITECTURES, QFCN, build_q_network
+from policy_helpers import q_states
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_HEIGHT = 0.15
@@ -46,17 +47,7 @@ def tiny_eq(num_rotations: int = 8, seed: int = 0, **kwargs) -> EquivariantQFCN:
 
 
 def states(n: int, seed: int = 0):
-    """Block scenes on a noisy floor [n, 1, 128, 128] m, random in-hand images [n, 1, 24, 24] m, holding
-    alternating [n, 1] (pick, place, ...)."""
-    gen = torch.Generator().manual_seed(seed)
-    scenes = torch.rand(n, 1, 128, 128, generator=gen) * 0.02
-    for i in range(n):
-        for _ in range(4):
-            r, c = torch.randint(4, 110, (2,), generator=gen).tolist()
-            h, w = torch.randint(6, 18, (2,), generator=gen).tolist()
-            scenes[i, 0, r : r + h, c : c + w] += 0.04 * int(torch.randint(1, 4, (1,), generator=gen))
-    in_hand = torch.rand(n, 1, 24, 24, generator=gen) * 0.08
-    return scenes, in_hand, (torch.arange(n) % 2 == 1).unsqueeze(-1)
+    return q_states(n, seed, max_layers=3)
 
 
 def finite(t: torch.Tensor) -> torch.Tensor:

@@ -60,6 +60,8 @@ def test_auroc_equals_the_pairwise_count_with_ties_as_halves():
     assert auroc(scores, labels) == pytest.approx(pairs.mean().item())
     assert auroc(torch.arange(4.0), torch.tensor([False, False, True, True])) == 1.0
     assert math.isnan(auroc(torch.arange(3.0), torch.zeros(3, dtype=torch.bool)))
+    with pytest.raises(ValueError, match="one label per score, got 3 scores and 2 labels"):
+        auroc(torch.arange(3.0), torch.ones(2, dtype=torch.bool))
 
 
 def test_lookahead_entropy_is_the_entropy_of_each_candidates_prediction(nets):

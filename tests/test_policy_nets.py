@@ -10,6 +10,7 @@ from ldm_rl import geometry as g
 from ldm_rl.models.blocks import count_parameters, encode_heights
 from ldm_rl.models.q_fcn import Q_PRESETS, QFCN, build_q_network
 from ldm_rl.models.v_cnn import V_PRESETS, VCNN, build_value_network
+from policy_helpers import q_states
 
 MAX_HEIGHT = 0.15
 TINY = 0.125  # width of the networks in the tests that are not about the paper presets
@@ -34,17 +35,7 @@ def tiny_v(seed: int = 0) -> VCNN:
 
 
 def states(n: int, seed: int = 0):
-    """Block scenes with off-grid heights (a few above max_height), random in-hand images, holding alternating."""
-    gen = torch.Generator().manual_seed(seed)
-    scenes = torch.rand(n, 1, 128, 128, generator=gen) * 0.02
-    for i in range(n):
-        for _ in range(4):
-            r, c = torch.randint(4, 110, (2,), generator=gen).tolist()
-            h, w = torch.randint(6, 18, (2,), generator=gen).tolist()
-            scenes[i, 0, r : r + h, c : c + w] += 0.04 * int(torch.randint(1, 5, (1,), generator=gen))
-    in_hand = torch.rand(n, 1, 24, 24, generator=gen) * 0.08
-    holding = (torch.arange(n) % 2 == 1).unsqueeze(-1)
-    return scenes, in_hand, holding
+    return q_states(n, seed, max_layers=4)
 
 
 # --------------------------------------------------------------------------------------------

@@ -46,7 +46,6 @@ e2cnn's eval-mode cache would go stale under the target networks' parameter swap
 from __future__ import annotations
 
 import copy
-import math
 import warnings
 
 import torch
@@ -156,15 +155,9 @@ class EquivariantQFCN(nn.Module):
         frame_margin: int = 0,
     ) -> None:
         super().__init__()
-        from ldm_rl.models.q_fcn import _rotation_tables
+        from ldm_rl.models.q_fcn import _rotation_tables, check_q_arguments
 
-        encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
-        if not isinstance(num_rotations, int) or isinstance(num_rotations, bool) or num_rotations < 1:
-            raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
-        if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
-            raise ValueError(f"width must be a positive number, got {width!r}")
-        if not isinstance(frame_margin, int) or isinstance(frame_margin, bool) or not 0 <= frame_margin < geometry.HEIGHTMAP_SIZE // 4:
-            raise ValueError(f"frame_margin must be an int in [0, {geometry.HEIGHTMAP_SIZE // 4}) pixels, got {frame_margin!r}")
+        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin)
         self._init_args = (float(max_height), num_classes, num_rotations, float(width), frame_margin)
         self.max_height, self.num_classes = float(max_height), num_classes
         self.num_rotations, self.width, self.frame_margin = num_rotations, float(width), frame_margin

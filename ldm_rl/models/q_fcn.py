@@ -56,7 +56,7 @@ from ldm_rl import geometry
 from ldm_rl.models.blocks import LEAKY_SLOPE, BasicBlock, check_height_images, encode_heights, scaled_channels
 from ldm_rl.models.compile import CompiledInference
 
-__all__ = ["QFCN", "Q_PRESETS", "Q_ARCHITECTURES", "build_q_network"]
+__all__ = ["QFCN", "Q_PRESETS", "Q_ARCHITECTURES", "build_q_network", "check_q_arguments"]
 
 Q_PRESETS = {"paper": 1.0, "lite": 0.5}
 Q_ARCHITECTURES = ("fcn", "equivariant")  # build_q_network's choices (agent.q_architecture)
@@ -113,6 +113,17 @@ def _channels_last(x: torch.Tensor) -> bool:
     return x.dim() >= 4 and x.shape[-3] > 1 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
 
 
+def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin) -> None:
+    """The constructor arguments every Q map network takes; one ValueError naming the bad one."""
+    encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
+    if not isinstance(num_rotations, int) or isinstance(num_rotations, bool) or num_rotations < 1:
+        raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
+    if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
+        raise ValueError(f"width must be a positive number, got {width!r}")
+    if not isinstance(frame_margin, int) or isinstance(frame_margin, bool) or not 0 <= frame_margin < geometry.HEIGHTMAP_SIZE // 4:
+        raise ValueError(f"frame_margin must be an int in [0, {geometry.HEIGHTMAP_SIZE // 4}) pixels, got {frame_margin!r}")
+
+
 class QFCN(CompiledInference, nn.Module):
     """Pick/place Q maps over all pixels and R rotation bins. See the module docstring.
 
@@ -134,13 +145,7 @@ class QFCN(CompiledInference, nn.Module):
         frame_margin: int = 0,
     ) -> None:
         super().__init__()
-        encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
-        if not isinstance(num_rotations, int) or isinstance(num_rotations, bool) or num_rotations < 1:
-            raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
-        if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
-            raise ValueError(f"width must be a positive number, got {width!r}")
-        if not isinstance(frame_margin, int) or isinstance(frame_margin, bool) or not 0 <= frame_margin < geometry.HEIGHTMAP_SIZE // 4:
-            raise ValueError(f"frame_margin must be an int in [0, {geometry.HEIGHTMAP_SIZE // 4}) pixels, got {frame_margin!r}")
+        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin)
         self.frame_margin = frame_margin
         self.max_height, self.num_classes = float(max_height), num_classes
         self.num_rotations, self.width = num_rotations, float(width)

@@ -92,6 +92,7 @@ class LookaheadPlanner(StatePolicy):
                 or not uncertainty_penalty >= 0:
             raise ValueError(f"uncertainty_penalty must be a number >= 0 (V units per nat), got {uncertainty_penalty!r}")
         self.uncertainty_penalty = float(uncertainty_penalty)
+        self.lookahead_options: dict[str, bool] = {}  # extra lookahead outputs :meth:`backup` reads
         actions = getattr(q_network, "num_rotations", 1) * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
         if not isinstance(num_candidates, int) or isinstance(num_candidates, bool) or not 1 <= num_candidates <= actions:
             raise ValueError(f"num_candidates must be an int in [1, {actions}] (the Q map's rotations x pixels), "
@@ -154,13 +155,19 @@ class LookaheadPlanner(StatePolicy):
             return scores.argmax(-1)
         return torch.multinomial(torch.softmax(scores / hp["tau_value"], -1), 1).squeeze(-1)
 
+    def backup(self, result, scores: torch.Tensor, hp: dict[str, float]) -> torch.Tensor:
+        """The ``[B, N]`` scores the choice is made on, from the one-step ``scores`` and the lookahead ``result``
+        (here: the one-step scores; planners that look further ahead override it)."""
+        return scores
+
     def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
         """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]
-        [, candidate_entropy]}``."""
+        [, candidate_entropy][, candidate_scores]}``."""
         hp = self.hyperparameters(greedy=greedy)
         with eval_mode(self.q_network, self.dynamics, self.value_network):
             q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy)
-            scores, result = self.score(heightmap, in_hand, holding, candidates)
+            scores, result = self.score(heightmap, in_hand, holding, candidates, **self.lookahead_options)
+            scores = self.backup(result, scores, hp)
             choice = self.choose(scores, hp, greedy=greedy)
             action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
             state_value = self.value_network(heightmap, in_hand)
@@ -174,4 +181,6 @@ class LookaheadPlanner(StatePolicy):
             out[keys.ACTION_VALUE] = q_map
         if self.uncertainty_penalty:
             out[keys.CANDIDATE_ENTROPY] = result.entropy
+        if keys.CANDIDATE_SCORES in self.out_keys:
+            out[keys.CANDIDATE_SCORES] = scores
         return out

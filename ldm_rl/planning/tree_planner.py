@@ -18,8 +18,8 @@ This planner expands a tree over imagined states, one batched LDM pass per depth
 4. the action is chosen among the K expanded first actions by their backed-up score (greedy: the best,
    first on ties; exploring: a draw from ``softmax(score/τ_v)``).
 
-Cost per decision (depth 2): 1 + K Q maps and N·(1 + K) LDM predictions (N = 10, K = 3: 4× the
-one-step planner's). ``depth=1`` is the one-step planner; ``branching=1`` with a constant V picks the
+Cost per decision (depth 2): 1 + K Q maps and N·(1 + K) LDM predictions (N = 10, K = 3: measured 4.4× the
+one-step planner's time, docs/planning.md). ``depth=1`` is the one-step planner; ``branching=1`` with a constant V picks the
 one-step planner's first proposal.
 """
 
@@ -31,7 +31,6 @@ from torch import nn
 from ldm_rl import keys
 from ldm_rl.planning.planner import LookaheadPlanner
 from ldm_rl.planning.sampling import sample_candidates
-from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["TreePlanner", "TREE_KEYS"]
 
@@ -68,33 +67,13 @@ class TreePlanner(LookaheadPlanner):
             raise ValueError(f"depth={depth} backs scores up through V's reward head: value_network "
                              f"{type(value_network).__name__} has no value_and_reward")
         self.depth, self.branching = depth, branching
+        self.lookahead_options = {"with_states": depth > 1, "with_reward": depth > 1}
         self.gamma, self.terminal_reward = float(gamma), float(terminal_reward)
         self.out_keys = [*self.out_keys, keys.CANDIDATE_SCORES]
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
-        """Flat ``[B]`` states -> the one-step planner's outputs and ``candidate_scores``."""
-        hp = self.hyperparameters(greedy=greedy)
-        with eval_mode(self.q_network, self.dynamics, self.value_network):
-            q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy)
-            deeper = self.depth > 1
-            scores, first = self.score(heightmap, in_hand, holding, candidates, with_states=deeper, with_reward=deeper)
-            if deeper:
-                scores = self._expand(first, scores, self.depth - 1, hp)
-            choice = self.choose(scores, hp, greedy=greedy)
-            action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
-            state_value = self.value_network(heightmap, in_hand)
-        out = {
-            keys.ACTION: action,
-            keys.CANDIDATE_ACTIONS: candidates,
-            keys.CANDIDATE_VALUES: first.values,
-            keys.STATE_VALUE: state_value,
-            keys.CANDIDATE_SCORES: scores,
-        }
-        if self.write_action_value:
-            out[keys.ACTION_VALUE] = q_map
-        if self.uncertainty_penalty:
-            out[keys.CANDIDATE_ENTROPY] = first.entropy
-        return out
+    def backup(self, result, scores: torch.Tensor, hp: dict[str, float]) -> torch.Tensor:
+        """The depth-``depth`` scores of the first candidates (``-inf`` where not expanded)."""
+        return scores if self.depth == 1 else self._expand(result, scores, self.depth - 1, hp)
 
     def _expand(self, result, scores: torch.Tensor, remaining: int, hp: dict[str, float]) -> torch.Tensor:
         """Back up the best K of ``scores`` ``[M, N]`` (their predicted states, rewards and entropies in the

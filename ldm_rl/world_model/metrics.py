@@ -158,6 +158,8 @@ def auroc(scores: torch.Tensor, labels: torch.Tensor) -> float:
     The Mann-Whitney form: the fraction of (positive, negative) pairs ranked right, ties counting one half
     (average ranks). NaN when either class is empty.
     """
+    if scores.numel() != labels.numel():
+        raise ValueError(f"auroc needs one label per score, got {scores.numel()} scores and {labels.numel()} labels")
     scores, labels = scores.reshape(-1).double(), labels.reshape(-1).bool()
     n_pos, n_neg = int(labels.sum()), int((~labels).sum())
     if n_pos == 0 or n_neg == 0:
