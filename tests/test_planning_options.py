@@ -331,3 +331,14 @@ def test_smoke_run_with_both_options_then_evaluate_its_weights_with_the_tree_pla
         "planner.uncertainty_penalty=0.0", f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert result["planner"] == {"name": "diverse", "uncertainty_penalty": 0.0} and result["episodes"] == 1
+
+
+def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):
+    from ldm_rl.agents import load_agent
+    from ldm_rl.run.checkpoint import CheckpointError, save_checkpoint
+
+    path = save_checkpoint(tmp_path / "checkpoint.pt", {"agent": {}},
+                           meta={"kind": "agent", "preset": "lite", "task": "ldm_rl/BlockStacking-v0",
+                                 "config": {"agent": {"name": "fcdqn"}, "planner": {"tau": 0.1}}})
+    with pytest.raises(CheckpointError, match="apply to the ldm agent's planner; .* holds agent 'fcdqn'"):
+        load_agent(path, planner={"name": "tree"})

@@ -48,7 +48,8 @@ def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_netw
     if name not in PLANNERS:
         raise ValueError(f"planner.name must be one of {sorted(PLANNERS)}, got {name!r}")
     if name == "tree":
-        kwargs["gamma"] = gamma if kwargs.get("gamma") is None else kwargs["gamma"]
+        if kwargs.get("gamma") is None:
+            kwargs["gamma"] = gamma
     else:  # the schema gives every planner the tree's keys (null); the others do not take them
         from ldm_rl.planning.tree_planner import TREE_KEYS
 
@@ -244,7 +245,7 @@ def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mappin
     if planner:
         if cfg["agent"]["name"] != "ldm":
             raise CheckpointError(f"planner overrides {dict(planner)} apply to the ldm agent's planner; {path} "
-                             f"holds agent {cfg['agent']['name']!r}")
+                                  f"holds agent {cfg['agent']['name']!r}")
         cfg = {**cfg, "planner": {**cfg["planner"], **_plain(planner)}}
     agent = build_agent(cfg, float(cfg["env"]["max_height"])).to(device)
     agent.load_policy_state_dict(checkpoint.state["agent"])  # best_policy.pt holds no target copies
