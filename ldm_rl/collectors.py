@@ -89,7 +89,7 @@ class TaskEnvFactory:
         if not 0 <= worker < num_workers:
             raise ValueError(f"worker must be in [0, {num_workers}), got {worker}")
         reset_seed = None if self.reset_seed is None else self.reset_seed + worker * (self.seed_block // num_workers)
-        env = make_env_from_config(self.env_cfg, reset_seed=reset_seed)
+        env = make_env_from_config(self.env_cfg, training=True, reset_seed=reset_seed)
         unwrap(env).episode_index = self.start_episode
         return env
 

@@ -157,13 +157,22 @@ class EnvConfig:
     num_rotations: int = spec(8, ge=2, multiple_of=2, doc="rotation bins k*pi/R")
     max_height: float = spec(gt=0, le=1, doc="metres of the top depth class")
     demo_procedure: str = spec("direct", choices=("direct", "deconstruct"), doc="expert demo procedure")
+    train_object_counts: Optional[List[int]] = spec(
+        None, doc="object counts drawn per training episode and expert demo (null = num_objects); evaluation uses num_objects")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
         low, high = OBJECT_COUNTS.get(node.id, (1, None))
-        if node.num_objects < low or (high is not None and node.num_objects > high):
-            allowed = f"exactly {low}" if low == high else f"in {low}..{high}"
-            return [f"{prefix}num_objects={node.num_objects}: {node.id} takes {allowed} objects"]
+        allowed = f"exactly {low}" if low == high else f"in {low}..{high}" if high is not None else f"at least {low}"
+        counts = [("num_objects", node.num_objects)]
+        if node.get("train_object_counts") is not None:
+            if len(node.train_object_counts) == 0:
+                return [f"{prefix}train_object_counts=[]: give null or a non-empty list of object counts"]
+            counts += [("train_object_counts", n) for n in node.train_object_counts]
+        for key, n in counts:
+            if n < low or (high is not None and n > high):
+                return [f"{prefix}{key}={n if key == 'num_objects' else list(node.train_object_counts)}: "
+                        f"{node.id} takes {allowed} objects"]
         return []
 
 

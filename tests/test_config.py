@@ -224,6 +224,8 @@ BAD_COMMANDS = [
      "error: env.num_objects=9: ldm_rl/HouseBuilding-v0 takes exactly 3 objects"),
     ("train_dynamics.py", ["env=bottle_arrangement", "env.num_objects=7"],
      "error: env.num_objects=7: ldm_rl/BottleArrangement-v0 takes in 1..6 objects"),
+    ("train_policy.py", ["env=house_building", "env.train_object_counts=[2,3]"],
+     "error: env.train_object_counts=[2, 3]: ldm_rl/HouseBuilding-v0 takes exactly 3 objects"),
     ("evaluate.py", [], "error: checkpoint is missing: set checkpoint=<value> (a checkpoint.pt written by recipes/train_policy.py)"),
     ("evaluate.py", ["checkpoint=runs/typo.pt"], "error: checkpoint='runs/typo.pt' is invalid: must be an existing file"),
     pytest.param("train_policy.py", ["device=cuda"], "error: device=cuda: this machine has no NVIDIA driver",

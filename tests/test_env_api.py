@@ -67,6 +67,36 @@ def test_make_env_from_config_and_bad_id():
         make_env("ldm_rl/Nope-v0")
 
 
+def test_train_object_counts_vary_the_training_scenes_only():
+    """The training env (and the demos) draw each scene's object count from train_object_counts, seeded;
+    the evaluation env keeps num_objects; the step limit fits the largest count."""
+    from ldm_rl.data.demos import collect_demos
+    from ldm_rl.envs.torchrl_env import unwrap
+
+    cfg = {"id": "ldm_rl/BlockStacking-v0", "num_objects": 3, "train_object_counts": [2, 3]}
+
+    def counts(env, n=12):
+        task = unwrap(env)
+        seen = []
+        for _ in range(n):
+            env.reset()
+            seen.append((task.num_objects, len(task.sim.objects)))
+        env.close()
+        return seen, task.max_steps
+
+    drawn, max_steps = counts(ldm_rl.envs.make_env_from_config(cfg, training=True, reset_seed=4))
+    assert all(n == m for n, m in drawn) and {n for n, _ in drawn} == {2, 3} and max_steps == 10
+    assert drawn == counts(ldm_rl.envs.make_env_from_config(cfg, training=True, reset_seed=4))[0]
+    assert counts(ldm_rl.envs.make_env_from_config(cfg, reset_seed=4))[0] == [(3, 3)] * 12
+    demos = collect_demos(cfg, num_episodes=8, seed=0, progress=False)
+    lengths = torch.unique_consecutive(demos["episode"], return_counts=True)[1].tolist()
+    assert {2, 4} <= set(lengths) and bool(demos["next", "reward"].sum() == 8)  # 2 cubes: one pick, one place
+    with pytest.raises(ValueError, match="object_counts"):
+        gym.make("ldm_rl/BlockStacking-v0", object_counts=[])
+    with pytest.raises(ValueError, match="tray slots"):
+        gym.make("ldm_rl/BottleArrangement-v0", num_objects=4, object_counts=[4, 7])
+
+
 def test_expert_policy_solves_block_stacking_in_a_torchrl_rollout():
     env = make_env("ldm_rl/BlockStacking-v0")
     try:

@@ -87,7 +87,7 @@ def _make_gym_env(env_cfg: Mapping[str, Any], noise):
     from ldm_rl.envs.torchrl_env import env_kwargs_from_config
 
     register_envs()
-    env_id, kwargs = env_kwargs_from_config(env_cfg)
+    env_id, kwargs = env_kwargs_from_config(env_cfg, training=True)
     return gym.make(env_id, expert_noise=noise, **kwargs).unwrapped, env_id, kwargs
 
 

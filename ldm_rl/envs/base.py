@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -93,15 +93,25 @@ class PickPlaceEnv(gym.Env):
         gripper: GripperConfig | None = None,
         settle_steps: int = 60,
         reset_seed: int | None = None,
+        object_counts: Sequence[int] | None = None,
     ):
         if not isinstance(num_objects, int) or num_objects < 1:
             raise ValueError(f"num_objects must be a positive int, got {num_objects!r}")
+        if object_counts is not None:
+            object_counts = tuple(object_counts)
+            if not object_counts or any(not isinstance(n, int) or isinstance(n, bool) or n < 1 for n in object_counts):
+                raise ValueError(f"object_counts must be a non-empty list of positive ints or None, got {object_counts!r}")
+        for n in {num_objects, *(object_counts or ())}:
+            self._check_object_count(n)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         if not isinstance(num_rotations, int) or num_rotations < 1:
             raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
         self.num_objects = num_objects
-        self.max_steps = max_steps if max_steps is not None else 2 * num_objects + self.default_max_steps_slack
+        # with object_counts, every reset draws the scene's object count from it (the task stays "all of them")
+        self.object_counts = object_counts
+        most = max(object_counts) if object_counts else num_objects
+        self.max_steps = max_steps if max_steps is not None else 2 * most + self.default_max_steps_slack
         if not isinstance(self.max_steps, int) or self.max_steps < 1:
             raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
         self.num_rotations = num_rotations
@@ -133,6 +143,10 @@ class PickPlaceEnv(gym.Env):
         self.reset_seed, self.episode_index = reset_seed, 0
 
     # --- task hooks ------------------------------------------------------------------------
+    @classmethod
+    def _check_object_count(cls, n: int) -> None:
+        """Raise ValueError when the task cannot hold ``n`` objects (the constructor's own check)."""
+
     def _build_scene(self, rng: np.random.Generator) -> None:
         """Spawn the task's objects (raise SpawnError to resample)."""
         raise NotImplementedError
@@ -195,14 +209,20 @@ class PickPlaceEnv(gym.Env):
             seed = self.reset_seed + self.episode_index
         self.episode_index += 1
         super().reset(seed=seed)
+        self._draw_object_count()
         self._spawn(self._build_scene)
         return self._observation(), {}
 
     def reset_to_goal(self, *, seed: int | None = None) -> dict:
         """Reset to a *finished* structure (for the deconstruct demo procedure); returns the obs."""
         super().reset(seed=seed)
+        self._draw_object_count()
         self._spawn(self._build_goal_scene)
         return self._observation()
+
+    def _draw_object_count(self) -> None:
+        if self.object_counts:
+            self.num_objects = int(self.object_counts[self.np_random.integers(len(self.object_counts))])
 
     def restart_clock(self) -> dict:
         """Start a new episode from the current scene (step count 0, empty in-hand image)."""

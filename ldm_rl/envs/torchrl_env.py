@@ -89,22 +89,27 @@ def make_env(env_id: str, *, transforms: Iterable = (), **kwargs):
     return env
 
 
-def env_kwargs_from_config(cfg: Mapping[str, Any]) -> tuple[str, dict]:
-    """(env id, constructor kwargs) from a ``cfg.env`` node (see conf/env/*.yaml)."""
+def env_kwargs_from_config(cfg: Mapping[str, Any], *, training: bool = False) -> tuple[str, dict]:
+    """(env id, constructor kwargs) from a ``cfg.env`` node (see conf/env/*.yaml). ``training``: the
+    env that collects training episodes and expert demos, which draws its object count per episode
+    from ``train_object_counts`` when that is set (evaluation envs keep ``num_objects``)."""
     cfg = dict(cfg)
     if "id" not in cfg:
         raise ValueError("cfg.env needs an 'id' (e.g. ldm_rl/BlockStacking-v0)")
+    counts = cfg.get("train_object_counts") if training else None
     kwargs = {
         "num_objects": cfg.get("num_objects"),
         "max_steps": cfg.get("max_steps"),
         "num_rotations": cfg.get("num_rotations"),  # absent: the env's default
+        "object_counts": list(counts) if counts is not None else None,
     }
     return cfg["id"], {k: v for k, v in kwargs.items() if v is not None}
 
 
-def make_env_from_config(cfg: Mapping[str, Any], **overrides):
-    """``make_env`` from a Hydra ``cfg.env`` node; ``overrides`` win over the config."""
-    env_id, kwargs = env_kwargs_from_config(cfg)
+def make_env_from_config(cfg: Mapping[str, Any], *, training: bool = False, **overrides):
+    """``make_env`` from a Hydra ``cfg.env`` node (``training``: see ``env_kwargs_from_config``);
+    ``overrides`` win over the config."""
+    env_id, kwargs = env_kwargs_from_config(cfg, training=training)
     kwargs.update(overrides)
     return make_env(env_id, **kwargs)
 

@@ -26,10 +26,13 @@ class BottleArrangementEnv(PickPlaceEnv):
     pick_depth = 0.03
 
     def __init__(self, num_objects: int = 6, **kwargs):
-        if not 1 <= num_objects <= len(SLOTS):
-            raise ValueError(f"num_objects must be in 1..{len(SLOTS)} (tray slots), got {num_objects!r}")
         super().__init__(num_objects, **kwargs)
         self.tray = ContainerFrame(TRAY)
+
+    @classmethod
+    def _check_object_count(cls, n: int) -> None:
+        if not 1 <= n <= len(SLOTS):
+            raise ValueError(f"num_objects must be in 1..{len(SLOTS)} (tray slots), got {n!r}")
 
     # --- scene -----------------------------------------------------------------------------------
     def _build_scene(self, rng: np.random.Generator) -> None:

@@ -23,9 +23,12 @@ class HouseBuildingEnv(PickPlaceEnv):
     max_height = 0.15
 
     def __init__(self, num_objects: int = 3, **kwargs):
-        if num_objects != 3:
-            raise ValueError(f"num_objects must be 3 for house building (2 cubes + roof), got {num_objects!r}")
         super().__init__(num_objects, **kwargs)
+
+    @classmethod
+    def _check_object_count(cls, n: int) -> None:
+        if n != 3:
+            raise ValueError(f"num_objects must be 3 for house building (2 cubes + roof), got {n!r}")
 
     @property
     def cubes(self):
