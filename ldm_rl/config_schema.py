@@ -157,6 +157,8 @@ class EnvConfig:
     num_rotations: int = spec(8, ge=2, multiple_of=2, doc="rotation bins k*pi/R")
     max_height: float = spec(gt=0, le=1, doc="metres of the top depth class")
     demo_procedure: str = spec("direct", choices=("direct", "deconstruct"), doc="expert demo procedure")
+    failed_pick_memory: int = spec(0, ge=0, le=64, doc="picks that came up empty, remembered until the hand changes and "
+                                   "never proposed again (0 = off; ldm_rl.envs.memory)")
     train_object_counts: Optional[List[int]] = spec(
         None, doc="object counts drawn per training episode and expert demo (null = num_objects); evaluation uses num_objects")
 
@@ -603,6 +605,7 @@ class EvaluateConfig(RunSettings):
     num_objects: Optional[int] = spec(None, ge=1, doc="objects (null = the checkpoint's)")
     max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode (null = 2*objects + 4)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="the preset the checkpoint must hold")
+    failed_pick_memory: Optional[int] = spec(None, ge=0, le=64, doc="env.failed_pick_memory (null = the checkpoint's)")
     progress: bool = True
     render: RenderConfig = group(RenderConfig)
     planner: PlannerOverrides = group(PlannerOverrides)

@@ -70,7 +70,7 @@ def evaluate(cfg: DictConfig) -> dict:
     planner = {key: value for key, value in cfg.planner.items() if value is not None}
     agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device), planner=planner)
     env_cfg = dict(train_cfg["env"])
-    for key in ("num_objects", "max_steps"):
+    for key in ("num_objects", "max_steps", "failed_pick_memory"):
         if cfg[key] is not None:
             env_cfg[key] = int(cfg[key])
     if cfg.num_objects is not None and cfg.max_steps is None:

@@ -108,9 +108,15 @@ def env_kwargs_from_config(cfg: Mapping[str, Any], *, training: bool = False) ->
 
 def make_env_from_config(cfg: Mapping[str, Any], *, training: bool = False, **overrides):
     """``make_env`` from a Hydra ``cfg.env`` node (``training``: see ``env_kwargs_from_config``);
-    ``overrides`` win over the config."""
+    ``overrides`` win over the config. ``failed_pick_memory`` > 0 appends
+    :class:`~ldm_rl.envs.memory.FailedPickMemory` of that size."""
     env_id, kwargs = env_kwargs_from_config(cfg, training=training)
     kwargs.update(overrides)
+    memory = int(cfg.get("failed_pick_memory") or 0)
+    if memory:
+        from ldm_rl.envs.memory import FailedPickMemory
+
+        return make_env(env_id, transforms=[FailedPickMemory(memory)], **kwargs)
     return make_env(env_id, **kwargs)
 
 

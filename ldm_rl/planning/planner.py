@@ -31,7 +31,7 @@ from torch import nn
 from ldm_rl import geometry, keys
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.policy import ScheduleLike, StatePolicy
-from ldm_rl.planning.sampling import sample_candidates
+from ldm_rl.planning.sampling import mask_actions, sample_candidates
 from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["LookaheadPlanner"]
@@ -62,7 +62,8 @@ class LookaheadPlanner(StatePolicy):
         write_action_value: also write the ``[*B, R, H, W]`` Q map (``action_value``), 512 KB per state.
         uncertainty_penalty: λ ≥ 0 (V units per nat): candidates are scored ``V − λ·H`` (0 = the paper).
 
-    Reads ``heightmap``, ``in_hand``, ``holding``; writes ``action`` ``[*B, 3]``, ``candidate_actions``
+    Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again);
+    writes ``action`` ``[*B, 3]``, ``candidate_actions``
     ``[*B, N, 3]``, ``candidate_values`` ``[*B, N]`` (``V(f(s, a))``), ``state_value`` ``[*B, 1]``,
     ``action_value`` and, with λ > 0, ``candidate_entropy`` ``[*B, N]`` (nats).
     """
@@ -127,12 +128,13 @@ class LookaheadPlanner(StatePolicy):
                 raise ValueError(f"{key} must have shape {want} (batch size {tuple(tensordict.batch_size)} + "
                                  f"[1, {size}, {size}] metres), got {shape}")
 
-    def propose(self, heightmap, in_hand, holding, hp: dict[str, float], *, greedy: bool):
-        """``(Q map [B, R, H, W], candidates [B, N, 3])`` of flat states (networks already in eval mode)."""
+    def propose(self, heightmap, in_hand, holding, hp: dict[str, float], *, greedy: bool, avoid=None):
+        """``(Q map [B, R, H, W], candidates [B, N, 3])`` of flat states (networks already in eval mode);
+        no candidate lies near one of ``avoid`` ``[B, M, 3]`` (:func:`~ldm_rl.planning.sampling.mask_actions`)."""
         with torch.autocast(heightmap.device.type, dtype=torch.bfloat16, enabled=self.autocast == "bf16"):
             q_map = self.q_network(heightmap, in_hand, holding).float()
         candidates = sample_candidates(
-            q_map, self.num_candidates, tau=hp["tau"], beta=hp["beta"], sigma=hp["sigma"],
+            q_map if avoid is None else mask_actions(q_map, avoid), self.num_candidates, tau=hp["tau"], beta=hp["beta"], sigma=hp["sigma"],
             sigma_rot=hp["sigma_rot"], mode=self.greedy_proposal if greedy else self.proposal,
         )
         return q_map, candidates
@@ -160,12 +162,12 @@ class LookaheadPlanner(StatePolicy):
         (here: the one-step scores; planners that look further ahead override it)."""
         return scores
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
         """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]
         [, candidate_entropy][, candidate_scores]}``."""
         hp = self.hyperparameters(greedy=greedy)
         with eval_mode(self.q_network, self.dynamics, self.value_network):
-            q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy)
+            q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy, avoid=avoid)
             scores, result = self.score(heightmap, in_hand, holding, candidates, **self.lookahead_options)
             scores = self.backup(result, scores, hp)
             choice = self.choose(scores, hp, greedy=greedy)

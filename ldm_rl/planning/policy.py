@@ -1,6 +1,7 @@
 """The TensorDict policy base every planner stands on: batching over any ``[*B]``, schedules, greedy or not.
 
-A planner implements :meth:`StatePolicy.decide` on a flat batch of states; :meth:`StatePolicy.forward`
+A planner implements :meth:`StatePolicy.decide` on a flat batch of states (and, where the env writes
+``failed_picks`` (:class:`~ldm_rl.envs.memory.FailedPickMemory`), the actions to leave out); :meth:`StatePolicy.forward`
 takes a TensorDict of any batch shape (unbatched, ``[B]``, ``[B1, B2]``, ...) — an ``env.rollout`` step or
 a collector's batch — and writes the decision back in that shape. Whether to act greedily is read from
 TorchRL's exploration type (:func:`is_greedy`); hyperparameters are floats or schedules ``step -> float``
@@ -62,8 +63,9 @@ class StatePolicy(TensorDictModuleBase):
         """The schedules' current values."""
         return {name: float(schedule(self.step)) for name, schedule in self.schedules.items()}
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
-        """Flat states (``[B, 1, H, W]`` m, ``[B, 1, h, h]`` m, ``[B, 1]`` bool) -> name -> ``[B, ...]`` tensor."""
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
+        """Flat states (``[B, 1, H, W]`` m, ``[B, 1, h, h]`` m, ``[B, 1]`` bool) -> name -> ``[B, ...]`` tensor.
+        ``avoid``: ``[B, M, 3]`` int64 actions not to take (``-1`` rows: none) or None."""
         raise NotImplementedError
 
     def check_input(self, tensordict: TensorDictBase) -> None:
@@ -77,7 +79,8 @@ class StatePolicy(TensorDictModuleBase):
         batch = td.batch_size
         flat = td.reshape(-1)
         holding = flat.get(keys.HOLDING).reshape(-1, 1).bool()
-        decision = self.decide(flat.get(keys.HEIGHTMAP), flat.get(keys.IN_HAND), holding, greedy=is_greedy())
+        avoid = flat.get(keys.FAILED_PICKS, None)
+        decision = self.decide(flat.get(keys.HEIGHTMAP), flat.get(keys.IN_HAND), holding, greedy=is_greedy(), avoid=avoid)
         for name, value in decision.items():
             value = value.reshape(*batch, *value.shape[1:])
             tensordict.set(name, value.squeeze(0) if unbatched else value)

@@ -13,7 +13,7 @@ from torch import nn
 from ldm_rl import keys
 from ldm_rl.geometry import action_to_flat, flat_to_action
 from ldm_rl.planning.policy import ScheduleLike, StatePolicy
-from ldm_rl.planning.sampling import sample_candidates
+from ldm_rl.planning.sampling import mask_actions, sample_candidates
 from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["QMapPolicy"]
@@ -27,6 +27,7 @@ class QMapPolicy(StatePolicy):
         tau: temperature in Q units (a float or a schedule of the update count).
         write_action_value: also write the ``[*B, R, H, W]`` map under ``action_value``.
 
+    Reads ``failed_picks`` if present (never taken again: :class:`~ldm_rl.envs.memory.FailedPickMemory`).
     Writes ``action`` ``[*B, 3]``, ``chosen_action_value`` ``[*B, 1]`` and ``action_value``.
     """
 
@@ -35,16 +36,16 @@ class QMapPolicy(StatePolicy):
         self.q_network, self.write_action_value = q_network, bool(write_action_value)
         self.out_keys = [keys.ACTION, keys.CHOSEN_ACTION_VALUE] + ([keys.ACTION_VALUE] if write_action_value else [])
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool) -> dict[str, torch.Tensor]:
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
         with eval_mode(self.q_network):
             q_map = self.q_network(heightmap, in_hand, holding)
-        flat = q_map.flatten(1)
+        flat = (q_map if avoid is None else mask_actions(q_map, avoid)).flatten(1)
         height, width = q_map.shape[-2:]
         if greedy:
             index = flat.argmax(1)
             action = flat_to_action(index, height, width)
         else:  # one draw of softmax(Q/τ): sample_candidates with N = 1 (no inhibition is applied after the last draw)
-            action = sample_candidates(q_map, 1, tau=self.hyperparameters()["tau"], beta=0.0, mode="softmax")[:, 0]
+            action = sample_candidates(flat.view_as(q_map), 1, tau=self.hyperparameters()["tau"], beta=0.0, mode="softmax")[:, 0]
             index = action_to_flat(action, height, width)
         out = {keys.ACTION: action, keys.CHOSEN_ACTION_VALUE: flat.gather(1, index[:, None])}
         if self.write_action_value:

@@ -32,9 +32,38 @@ from torch import Tensor
 
 from ldm_rl.geometry import circular_bin_distance, flat_to_action
 
-__all__ = ["sample_candidates", "object_mask", "sample_near_objects", "NearObjectSampler"]
+__all__ = ["sample_candidates", "mask_actions", "object_mask", "sample_near_objects", "NearObjectSampler"]
 
 _MODES = ("softmax", "argmax")
+
+
+def mask_actions(q: Tensor, actions: Tensor, *, radius: float = 4.0, rot_radius: int = 1) -> Tensor:
+    """``q`` with ``-inf`` around each of ``actions``: every entry within ``radius`` pixels and ``rot_radius``
+    rotation bins (circular) of one of them, so that :func:`sample_candidates` and an argmax never propose it.
+
+    Args:
+        q: ``[B, R, H, W]`` floating Q map.
+        actions: ``[B, M, 3]`` int64 ``(row, col, rot)``; rows holding a ``-1`` are ignored.
+        radius: pixels (≥ 0; 4 px = 1.25 cm on the 128-px heightmap).
+        rot_radius: rotation bins (≥ 0).
+
+    Returns:
+        a new ``[B, R, H, W]`` map (``q`` is not modified).
+    """
+    if q.ndim != 4 or actions.ndim != 3 or actions.shape[-1] != 3 or actions.shape[0] != q.shape[0]:
+        raise ValueError(f"q must be [B, R, H, W] and actions [B, M, 3] with the same B, got {tuple(q.shape)} "
+                         f"and {tuple(actions.shape)}")
+    if not radius >= 0 or not (isinstance(rot_radius, int) and rot_radius >= 0):
+        raise ValueError(f"radius must be >= 0 pixels and rot_radius an int >= 0 bins, got {radius!r}, {rot_radius!r}")
+    b, r, h, w = q.shape
+    valid = (actions >= 0).all(-1)  # [B, M]
+    row, col, rot = actions.clamp_min(0).unbind(-1)
+    d_row = torch.arange(h, device=q.device)[None, None, :] - row[..., None]  # [B, M, H]
+    d_col = torch.arange(w, device=q.device)[None, None, :] - col[..., None]  # [B, M, W]
+    near_px = d_row[..., :, None] ** 2 + d_col[..., None, :] ** 2 <= radius**2  # [B, M, H, W]
+    near_rot = circular_bin_distance(torch.arange(r, device=q.device), rot[..., None], r) <= rot_radius  # [B, M, R]
+    near = (near_rot[..., :, None, None] & near_px[..., None, :, :] & valid[..., None, None, None]).any(1)
+    return q.masked_fill(near, -math.inf)
 
 
 def sample_candidates(

@@ -1,0 +1,124 @@
+"""FailedPickMemory (an env transform) and the Q-map policies that never repeat a pick that came up empty."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+
+from ldm_rl import keys
+from ldm_rl.envs.memory import FailedPickMemory
+from ldm_rl.planning.planner import LookaheadPlanner
+from ldm_rl.planning.q_map import QMapPolicy
+from ldm_rl.planning.sampling import mask_actions
+from policy_helpers import scenes, tiny_networks
+
+EMPTY_CORNER = (12, 12, 0)  # a pick far from every cube of the seeded scenes below: the hand stays empty
+
+
+def test_mask_actions_matches_a_loop_oracle_and_ignores_padding():
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(2, 6, 9, 9, generator=g)
+    avoid = torch.tensor([[[4, 4, 0], [-1, -1, -1]], [[0, 8, 5], [8, 1, 2]]])
+    masked = mask_actions(q, avoid, radius=2.0, rot_radius=1)
+    expect = q.clone()
+    for b in range(2):
+        for row, col, rot in avoid[b].tolist():
+            if row < 0:
+                continue
+            for k in range(6):
+                if min((k - rot) % 6, (rot - k) % 6) > 1:
+                    continue
+                for i in range(9):
+                    for j in range(9):
+                        if (i - row) ** 2 + (j - col) ** 2 <= 4:
+                            expect[b, k, i, j] = -math.inf
+    assert torch.equal(masked, expect) and torch.isfinite(q).all()  # bin 5 wraps to bin 0; q untouched
+    assert torch.equal(mask_actions(q, torch.full((2, 3, 3), -1)), q)
+    with pytest.raises(ValueError, match="actions"):
+        mask_actions(q, avoid[0])
+
+
+def _memory_env():
+    from ldm_rl.envs import make_env
+
+    env = make_env("ldm_rl/BlockStacking-v0", num_objects=2, max_steps=6, transforms=[FailedPickMemory(2)])
+    env.set_seed(3)
+    return env
+
+
+@pytest.mark.slow
+def test_memory_records_empty_picks_and_clears_when_the_hand_changes():
+    from ldm_rl.envs import expert_policy
+
+    env = _memory_env()
+    try:
+        check_env_specs(env, seed=3)
+        td = env.reset()
+        assert td[keys.FAILED_PICKS].tolist() == [[-1, -1, -1]] * 2
+        memories = []
+        for action in (EMPTY_CORNER, (20, 12, 3), (12, 20, 1)):
+            td = env.step(td.set(keys.ACTION, torch.tensor(action)))["next"]
+            memories.append(td[keys.FAILED_PICKS].tolist())
+        assert memories == [[list(EMPTY_CORNER), [-1, -1, -1]], [[20, 12, 3], list(EMPTY_CORNER)],
+                            [[12, 20, 1], [20, 12, 3]]]  # most recent first, the oldest dropped
+        td = env.step(expert_policy(env)(td))["next"]  # the expert's pick holds a cube
+        assert bool(td[keys.HOLDING]) and td[keys.FAILED_PICKS].tolist() == [[-1, -1, -1]] * 2
+        td = env.step(td.set(keys.ACTION, torch.tensor(EMPTY_CORNER)))["next"]  # a place: the hand changes again
+        assert td[keys.FAILED_PICKS].tolist() == [[-1, -1, -1]] * 2
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="size"):
+        FailedPickMemory(0)
+
+
+class FixedQ(nn.Module):
+    """A Q 'network' whose map peaks at one action (what an untrained or wrong Q may do)."""
+
+    num_rotations = 8
+
+    def forward(self, heightmap, in_hand, holding):
+        q = torch.zeros(heightmap.shape[0], 8, 128, 128)
+        q[:, EMPTY_CORNER[2], EMPTY_CORNER[0], EMPTY_CORNER[1]] = 1.0
+        return q
+
+
+@pytest.mark.slow
+def test_a_greedy_q_policy_repeats_an_empty_pick_without_the_memory_and_not_with_it():
+    from ldm_rl.envs import make_env
+
+    policy = QMapPolicy(FixedQ(), write_action_value=False)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        plain = make_env("ldm_rl/BlockStacking-v0", num_objects=2, max_steps=3)
+        plain.set_seed(3)
+        repeated = plain.rollout(3, policy)[keys.ACTION]
+        plain.close()
+        env = _memory_env()
+        varied = env.rollout(3, policy)[keys.ACTION]
+        env.close()
+    assert repeated.tolist() == [list(EMPTY_CORNER)] * 3
+    assert varied[0].tolist() == list(EMPTY_CORNER)
+    for t in (1, 2):  # each later pick keeps clear of every earlier empty one
+        for earlier in varied[:t]:
+            assert (varied[t, :2] - earlier[:2]).pow(2).sum() > 16 or \
+                min((varied[t, 2] - earlier[2]) % 8, (earlier[2] - varied[t, 2]) % 8) > 1
+
+
+def test_the_lookahead_planner_proposes_nothing_near_an_avoided_action():
+    q, dynamics, value = tiny_networks(0)
+    planner = LookaheadPlanner(q, dynamics, value, num_candidates=6, write_action_value=False)
+    td = TensorDict(scenes(3, 1), batch_size=[3])
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        first = planner(td.clone())
+        avoid = torch.full((3, 2, 3), -1)
+        avoid[:, 0] = first[keys.ACTION]
+        second = planner(td.clone().set(keys.FAILED_PICKS, avoid))
+    cands, taken = second[keys.CANDIDATE_ACTIONS], first[keys.ACTION][:, None]
+    near_px = (cands[..., :2] - taken[..., :2]).pow(2).sum(-1) <= 16
+    d_rot = (cands[..., 2] - taken[..., 2]).remainder(8)
+    near_rot = torch.minimum(d_rot, 8 - d_rot) <= 1
+    assert not (near_px & near_rot).any() and not torch.equal(second[keys.ACTION], first[keys.ACTION])
