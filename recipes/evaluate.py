@@ -84,6 +84,8 @@ def evaluate(cfg: DictConfig) -> dict:
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name, **result.as_dict()}
     if planner:
         summary["planner"] = planner
+    if cfg.failed_pick_memory is not None:
+        summary["failed_pick_memory"] = int(cfg.failed_pick_memory)
     if recorded:
         summary["pictures"] = render_episodes(recorded, agent, cfg, hydra_output_dir(), max_height=float(env_cfg["max_height"]),
                                               num_rotations=int(env_cfg["num_rotations"]),

@@ -305,8 +305,9 @@ def test_option_misuse_is_one_clear_config_error(overrides, message):
 
 
 @pytest.mark.slow
-def test_smoke_run_with_both_options_then_evaluate_its_weights_with_the_tree_planner(tmp_path):
-    """CI smoke: a tiny training run with the tree planner and both entropy penalties, then recipes/evaluate.py
+def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_planner(tmp_path):
+    """CI smoke: a tiny training run with the tree planner, both entropy penalties, the failed-pick memory and
+    2- or 3-block training scenes, then recipes/evaluate.py
     planning its weights with planner overrides (written into evaluation.json)."""
     import json
     import os
@@ -324,13 +325,15 @@ def test_smoke_run_with_both_options_then_evaluate_its_weights_with_the_tree_pla
 
     train = tmp_path / "train"
     run("train_policy.py", "experiment=smoke", "planner=tree", "planner.depth=2", "planner.branching=2",
-        "planner.uncertainty_penalty=0.1", "agent.target_uncertainty_penalty=0.1", f"hydra.run.dir={train}")
+        "planner.uncertainty_penalty=0.1", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
+        "env.train_object_counts=[2,3]", f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
-        "planner.uncertainty_penalty=0.0", f"hydra.run.dir={tmp_path / 'eval'}")
+        "planner.uncertainty_penalty=0.0", "failed_pick_memory=0", f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert result["planner"] == {"name": "diverse", "uncertainty_penalty": 0.0} and result["episodes"] == 1
+    assert result["failed_pick_memory"] == 0
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):

@@ -202,7 +202,7 @@ class ParallelJawGripper:
             self._command(j, 0.0, c.finger_force, c.finger_speed)
         for i in range(c.max_close_steps):
             self.sim.step()
-            (qa, va), (qb, vb) = self._joint(FINGER_A), self._joint(FINGER_B)
+            (_, va), (_, vb) = self._joint(FINGER_A), self._joint(FINGER_B)
             if i >= 3 and abs(va) < 5e-3 and abs(vb) < 5e-3:
                 break
 
