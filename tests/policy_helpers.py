@@ -44,6 +44,19 @@ def transitions(batch: int, seed: int = 0, terminated=None) -> TensorDict:
                                 "done": terminated.clone()}}, batch_size=[batch])
 
 
+def quarter_turn_maps(q, grad: bool = False, seed: int = 1, max_layers: int = 4):
+    """``(maps, plus, minus)`` of Q network ``q`` on 4 :func:`q_states` scenes, as they are and turned by ±90°
+    (``[4, R, 128, 128]`` each, the quarter-turn tests' inputs), with or without gradients."""
+    import math
+
+    from ldm_rl import geometry
+
+    scene, in_hand, holding = q_states(4, seed=seed, max_layers=max_layers)
+    with torch.set_grad_enabled(grad):
+        return (q(scene, in_hand, holding), q(geometry.rotate(scene, math.pi / 2), in_hand, holding),
+                q(geometry.rotate(scene, -math.pi / 2), in_hand, holding))
+
+
 def q_states(n: int, seed: int = 0, max_layers: int = 4):
     """Block scenes on a noisy floor ``[n, 1, 128, 128]`` m (up to ``max_layers`` 4 cm layers per block: 4 reaches
     above the Q tests' max_height), random in-hand images ``[n, 1, 24, 24]`` m, holding alternating ``[n, 1]``."""

@@ -25,7 +25,7 @@ from ldm_rl.extras import MissingExtraError
 from ldm_rl.models.blocks import count_parameters
 from ldm_rl.models.equivariant_q import EquivariantQFCN
 from ldm_rl.models.q_fcn import Q_ARCHITECTURES, QFCN, build_q_network
-from policy_helpers import q_states
+from policy_helpers import q_states, quarter_turn_maps
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_HEIGHT = 0.15
@@ -61,13 +61,8 @@ def finite(t: torch.Tensor) -> torch.Tensor:
 def test_q_maps_commute_with_quarter_turns_of_the_scene(num_rotations, grad):
     """Scene +90° <=> map +90° with the bin shifted by R/2 (and −90°), both heads, to float tolerance; the -inf
     pattern bit for bit. A plain CNN (or QFCN's weights without its rotations) fails this."""
-    q = tiny_eq(num_rotations)
     half = num_rotations // 2
-    scene, in_hand, holding = states(4, seed=1)
-    with torch.set_grad_enabled(grad):
-        maps = q(scene, in_hand, holding)
-        plus = q(g.rotate(scene, math.pi / 2), in_hand, holding)
-        minus = q(g.rotate(scene, -math.pi / 2), in_hand, holding)
+    maps, plus, minus = quarter_turn_maps(tiny_eq(num_rotations), grad, max_layers=3)
     maps, plus, minus = (finite(t.detach()) for t in (maps, plus, minus))
     scale = maps[maps > -1e29].abs().max()
     for got, want in ((plus[:, :half], g.rotate(maps[:, half:], math.pi / 2)),

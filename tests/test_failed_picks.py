@@ -41,6 +41,10 @@ def test_mask_actions_matches_a_loop_oracle_and_ignores_padding():
     assert torch.equal(mask_actions(q, torch.full((2, 3, 3), -1)), q)
     with pytest.raises(ValueError, match="actions"):
         mask_actions(q, avoid[0])
+    with pytest.raises(ValueError, match="integer"):
+        mask_actions(q, avoid.float())
+    with pytest.raises(ValueError, match="radius"):
+        mask_actions(q, avoid, radius=-1.0)
 
 
 def _memory_env():

@@ -10,7 +10,7 @@ from ldm_rl import geometry as g
 from ldm_rl.models.blocks import count_parameters, encode_heights
 from ldm_rl.models.q_fcn import Q_PRESETS, QFCN, build_q_network
 from ldm_rl.models.v_cnn import V_PRESETS, VCNN, build_value_network
-from policy_helpers import q_states
+from policy_helpers import q_states, quarter_turn_maps
 
 MAX_HEIGHT = 0.15
 TINY = 0.125  # width of the networks in the tests that are not about the paper presets
@@ -77,13 +77,8 @@ def test_unknown_preset_is_rejected():
 @pytest.mark.parametrize("num_rotations, grad", [(8, False), (8, True), (6, False)])
 def test_q_maps_are_bit_exactly_equivariant_to_quarter_turns(num_rotations, grad):
     """Scene +90° and bin + R/2 <=> map +90° (and −90° / bin − R/2), bit for bit, both heads."""
-    q = tiny_q(num_rotations)
     half = num_rotations // 2
-    scene, in_hand, holding = states(4, seed=1)
-    with torch.set_grad_enabled(grad):
-        maps = q(scene, in_hand, holding)
-        plus = q(g.rotate(scene, math.pi / 2), in_hand, holding)
-        minus = q(g.rotate(scene, -math.pi / 2), in_hand, holding)
+    maps, plus, minus = quarter_turn_maps(tiny_q(num_rotations), grad)
     # pixels no rotated frame covers read -inf; a finite sentinel lets geometry.rotate carry them exactly
     maps, plus, minus = (t.nan_to_num(neginf=-1e30) for t in (maps, plus, minus))
     assert torch.equal(plus[:, :half], g.rotate(maps[:, half:], math.pi / 2))

@@ -307,16 +307,10 @@ class EquivariantQFCN(nn.Module):
         whose map entry is ``-inf`` reads 0, a finite training output.
         """
         batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
-        size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
-        integer = torch.is_tensor(action) and not action.is_floating_point() and action.dtype != torch.bool
-        if not integer or action.shape != batch + (3,):
-            got = f"{action.dtype} {tuple(action.shape)}" if torch.is_tensor(action) else type(action).__name__
-            raise ValueError(f"action must be an integer [*B, 3] (row, col, rot) tensor with *B = {tuple(batch)}, got {got}")
-        action = action.reshape(-1, 3).long()
-        pixel_ok = (action[:, :2] >= 0) & (action[:, :2] < size)
-        if action.numel() and not bool(pixel_ok.all() & ((action[:, 2] >= 0) & (action[:, 2] < r)).all()):
-            lo, hi = int(action.min()), int(action.max())
-            raise ValueError(f"action must have row, col in [0, {size}) and rot in [0, {r}); got values in [{lo}, {hi}]")
+        from ldm_rl.models.q_fcn import check_q_action
+
+        size = geometry.HEIGHTMAP_SIZE
+        action = check_q_action(action, batch, self.num_rotations)
         if x.shape[0] == 0:
             return x.new_zeros(batch)
         flat = (action[:, 2] * size + action[:, 0]) * size + action[:, 1]  # [N] index into one [R, H, W] map

@@ -124,6 +124,23 @@ def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margi
         raise ValueError(f"frame_margin must be an int in [0, {geometry.HEIGHTMAP_SIZE // 4}) pixels, got {frame_margin!r}")
 
 
+def check_q_action(action, batch: tuple, num_rotations: int) -> torch.Tensor:
+    """``action`` ``[*B, 3]`` integer (row, col, rot) checked against the batch ``*B`` and the map's ranges;
+    returns it as ``[N, 3]`` int64 (one ValueError naming what is wrong)."""
+    size = geometry.HEIGHTMAP_SIZE
+    integer = torch.is_tensor(action) and not action.is_floating_point() and action.dtype != torch.bool
+    if not integer or action.shape != tuple(batch) + (3,):
+        got = f"{action.dtype} {tuple(action.shape)}" if torch.is_tensor(action) else type(action).__name__
+        raise ValueError(f"action must be an integer [*B, 3] (row, col, rot) tensor with *B = {tuple(batch)}, got {got}")
+    action = action.reshape(-1, 3).long()
+    pixel_ok = (action[:, :2] >= 0) & (action[:, :2] < size)
+    if action.numel() and not bool(pixel_ok.all() & ((action[:, 2] >= 0) & (action[:, 2] < num_rotations)).all()):
+        lo, hi = int(action.min()), int(action.max())
+        raise ValueError(f"action must have row, col in [0, {size}) and rot in [0, {num_rotations}); "
+                         f"got values in [{lo}, {hi}]")
+    return action
+
+
 class QFCN(CompiledInference, nn.Module):
     """Pick/place Q maps over all pixels and R rotation bins. See the module docstring.
 
@@ -328,16 +345,7 @@ class QFCN(CompiledInference, nn.Module):
         action the rotated frame does not cover (``-inf`` in the map) reads 0, a finite training output.
         """
         batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
-        size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
-        integer = torch.is_tensor(action) and not action.is_floating_point() and action.dtype != torch.bool
-        if not integer or action.shape != batch + (3,):
-            got = f"{action.dtype} {tuple(action.shape)}" if torch.is_tensor(action) else type(action).__name__
-            raise ValueError(f"action must be an integer [*B, 3] (row, col, rot) tensor with *B = {tuple(batch)}, got {got}")
-        action = action.reshape(-1, 3).long()
-        pixel_ok = (action[:, :2] >= 0) & (action[:, :2] < size)
-        if action.numel() and not bool(pixel_ok.all() & ((action[:, 2] >= 0) & (action[:, 2] < r)).all()):
-            lo, hi = int(action.min()), int(action.max())
-            raise ValueError(f"action must have row, col in [0, {size}) and rot in [0, {r}); got values in [{lo}, {hi}]")
+        action = check_q_action(action, batch, self.num_rotations)
         parts = [self._action_chunk(x[sl], hand[sl], holding[sl], action[sl]) for sl in self._chunks(x, 1)]
         if not parts:
             return x.new_zeros(batch)

@@ -50,9 +50,10 @@ def mask_actions(q: Tensor, actions: Tensor, *, radius: float = 4.0, rot_radius:
     Returns:
         a new ``[B, R, H, W]`` map (``q`` is not modified).
     """
-    if q.ndim != 4 or actions.ndim != 3 or actions.shape[-1] != 3 or actions.shape[0] != q.shape[0]:
-        raise ValueError(f"q must be [B, R, H, W] and actions [B, M, 3] with the same B, got {tuple(q.shape)} "
-                         f"and {tuple(actions.shape)}")
+    if q.ndim != 4 or actions.ndim != 3 or actions.shape[-1] != 3 or actions.shape[0] != q.shape[0] \
+            or actions.is_floating_point() or actions.dtype == torch.bool:
+        raise ValueError(f"q must be [B, R, H, W] and actions [B, M, 3] integer with the same B, got {tuple(q.shape)} "
+                         f"and {actions.dtype} {tuple(actions.shape)}")
     if not radius >= 0 or not (isinstance(rot_radius, int) and rot_radius >= 0):
         raise ValueError(f"radius must be >= 0 pixels and rot_radius an int >= 0 bins, got {radius!r}, {rot_radius!r}")
     b, r, h, w = q.shape
