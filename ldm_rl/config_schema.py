@@ -769,9 +769,10 @@ def _schema_default(schema: type | None, key: str) -> Any:
     return MISSING
 
 
-def config_differences(run: Mapping[str, Any], given: Mapping[str, Any], ignore: tuple[str, ...] = ("resume",),
+def config_differences(run: Mapping[str, Any], given: Mapping[str, Any], ignore: tuple[str, ...] = ("resume", "device"),
                        prefix: str = "", schema: type | None = None) -> list[str]:
-    """``key: run has X, the command gives Y`` for each leaf where two resolved configs differ.
+    """``key: run has X, the command gives Y`` for each leaf where two resolved configs differ; the keys in
+    ``ignore`` are the command's to choose (``device``: where the run continues, a property of the machine).
 
     With ``schema`` (the dataclass of ``given``), a key the run's config lacks is no difference when the
     command gives the schema's default: a key added after the run was written, whose default keeps the

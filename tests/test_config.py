@@ -365,6 +365,13 @@ def test_a_run_written_before_a_key_existed_resumes_when_the_key_is_at_its_defau
     changed = {**given, "agent": {**given["agent"], "gamma": 0.9}}
     assert config_schema.config_differences(run, changed, schema=schema) == [
         "agent.gamma: the run has 0.5, the command gives 0.9"]
+    moved = {**given, "device": "cuda" if given["device"] != "cuda" else "cpu"}  # the machine's to choose
+    assert config_schema.config_differences(run, moved, schema=schema) == []
+
+
+def test_every_recipe_defaults_to_the_same_device():
+    devices = {name: OmegaConf.load(CONF / f"{name}.yaml").get("device") for name in ("train_dynamics", "train_policy", "evaluate")}
+    assert set(devices.values()) == {"auto"}, devices
 
 
 def test_the_planner_choices_are_the_registered_planners():
@@ -382,3 +389,36 @@ def test_the_schema_default_rotation_count_is_the_packages():
 
     field = next(f for f in config_schema.dataclasses.fields(config_schema.EnvConfig) if f.name == "num_rotations")
     assert field.default == geometry.NUM_ROTATIONS
+
+
+AGENT_OPTIONS = sorted(p.stem for p in (CONF / "agent").glob("*.yaml"))
+
+
+def test_every_agent_extends_the_shared_base_and_repeats_none_of_its_defaults():
+    """conf/agent/base/common.yaml holds the keys several agents read, once: each agent's file extends it and
+    writes only its own keys or a different value; the choices of agent= are the registered agents."""
+    from ldm_rl.agents import AGENTS
+
+    assert AGENT_OPTIONS == sorted(AGENTS)
+    base = OmegaConf.to_container(OmegaConf.load(CONF / "agent" / "base" / "common.yaml"))
+    for name in AGENT_OPTIONS:
+        own = OmegaConf.to_container(OmegaConf.load(CONF / "agent" / f"{name}.yaml"))
+        assert own.pop("defaults") == ["base/common@_here_", "_self_"], name
+        repeated = [key for key, value in own.items() if base.get(key, object()) == value]
+        assert not repeated, f"conf/agent/{name}.yaml repeats base/common.yaml's {repeated}"
+        cfg = make_cfg(f"agent={name}", config_name="train_policy")
+        config_schema.validate_config(cfg, config_schema.TrainPolicyConfig)
+        assert cfg.agent.name == name and cfg.agent.gamma == base["gamma"] and cfg.agent.lr.q == base["lr"]["q"]
+        for key, value in own.items():
+            assert OmegaConf.to_container(cfg.agent)[key] == value, (name, key)  # the agent's own value wins
+
+
+def test_a_shared_preset_composes_with_every_agent():
+    """One preset, every agent (the comparison's sweep agent=ldm,fcdqn,rs,dynaq): the preset's keys reach
+    every agent, and each agent keeps its own."""
+    for name in AGENT_OPTIONS:
+        cfg = make_cfg(f"agent={name}", "experiment=curves_block_stacking", config_name="train_policy")
+        config_schema.validate_config(cfg, config_schema.TrainPolicyConfig)
+        assert cfg.agent.name == name and cfg.agent.gamma == 0.5 and cfg.agent.q_width == 0.25
+    assert make_cfg("agent=rs", config_name="train_policy").agent.q_grad_clip is None
+    assert make_cfg("agent=dynaq", config_name="train_policy").agent.imagined_ratio == 1.0

@@ -107,6 +107,16 @@ def test_chosen_option_and_user_config_dir(tmp_path):
     assert "resume=true hydra.run.dir=DIR" in text
 
 
+def test_an_option_that_extends_a_base_shows_both_files_in_merge_order():
+    """agent=fcdqn's keys live mostly in conf/agent/base/common.yaml: --help shows the base, then the option's
+    own keys and description, without the defaults list."""
+    text = recipe_help(str(ROOT / "recipes" / "train_policy.py"), config_name="train_policy", overrides=["agent=fcdqn"])
+    section = text.split("Keys of agent=fcdqn (conf/agent/base/common.yaml, then conf/agent/fcdqn.yaml, under agent.):")[1]
+    section = section.split("\nKeys of ")[0]
+    assert section.index("  gamma: 0.95") < section.index("  # FC-DQN baseline") < section.index("  name: fcdqn")
+    assert "\n  defaults:" not in section and "  - base/common@_here_" not in section
+
+
 def test_other_hydra_flags_still_reach_hydra():
     done = run_help("train_dynamics", "--hydra-help")
     assert done.returncode == 0, done.stderr

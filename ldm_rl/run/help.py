@@ -59,6 +59,19 @@ def _option_file(group: str, option: str, conf_dirs: Sequence[Path]) -> Path | N
     return next((d / group / f"{option}.yaml" for d in conf_dirs if (d / group / f"{option}.yaml").is_file()), None)
 
 
+def _base_files(group: str, option_file: Path, conf_dirs: Sequence[Path]) -> list[Path]:
+    """The files an option extends through its defaults list (``- base/common@_here_``: ``conf/<group>/base/
+    common.yaml``), in merge order; an entry naming another group (``override /env: ...``) is not one."""
+    found = []
+    for entry in OmegaConf.to_container(OmegaConf.load(option_file)).get("defaults") or []:
+        if isinstance(entry, str) and entry != "_self_":
+            name = entry.split("@")[0]
+            path = next((d / group / f"{name}.yaml" for d in conf_dirs if (d / group / f"{name}.yaml").is_file()), None)
+            if path is not None:
+                found += _base_files(group, path, conf_dirs) + [path]
+    return found
+
+
 def _presets_for(stem: str, conf_dirs: Sequence[Path]) -> list[str]:
     """The ``experiment/`` presets whose comments show a command of ``recipes/<stem>.py``."""
     needle = f"recipes/{stem}.py"
@@ -88,6 +101,13 @@ def _top_level_blocks(text: str) -> list[tuple[str | None, list[str]]]:
 def _own_keys(text: str) -> str:
     """The primary config's text without its defaults list (and the comments above it) and its ``hydra`` node."""
     kept = [lines for key, lines in _top_level_blocks(text) if key not in ("defaults", "hydra")]
+    return "\n".join(line for lines in kept for line in lines).strip("\n")
+
+
+def _without_defaults(text: str) -> str:
+    """An option's text without its defaults list (the comments above it stay: they describe the option)."""
+    kept = [[line for line in lines if line.lstrip().startswith("#") or not line.strip()] if key == "defaults" else lines
+            for key, lines in _top_level_blocks(text)]
     return "\n".join(line for lines in kept for line in lines).strip("\n")
 
 
@@ -184,10 +204,13 @@ def recipe_help(recipe_file: str, *, config_name: str, config_path: str = "../co
         option_file = _option_file(group, option, conf_dirs)
         if option_file is None:
             continue  # an unknown option: the run itself reports it in one line
-        where = option_file.relative_to(conf.parent) if option_file.is_relative_to(conf.parent) else option_file
-        body = option_file.read_text().strip("\n")
-        out += [f"Keys of {group}={option} ({where}, under {group}.):" if group != "experiment"
-                else f"experiment={option} ({where}):", _indent(body), ""]
+        files = _base_files(group, option_file, conf_dirs) + [option_file]
+        where = ", then ".join(str(f.relative_to(conf.parent) if f.is_relative_to(conf.parent) else f) for f in files)
+        if group == "experiment":
+            out += [f"experiment={option} ({where}):", _indent(option_file.read_text().strip("\n")), ""]
+            continue
+        body = "\n\n".join(_without_defaults(f.read_text()) for f in files)
+        out += [f"Keys of {group}={option} ({where}, under {group}.):", _indent(body), ""]
 
     out.append(_raw_help(primary, "footer", stem) or "Docs: README.md, docs/.")
     return "\n".join(out).rstrip() + "\n"
