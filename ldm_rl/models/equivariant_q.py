@@ -54,7 +54,7 @@ from torch import nn
 
 from ldm_rl import geometry
 from ldm_rl.extras import MissingExtraError, require_equivariant_q
-from ldm_rl.models.blocks import LEAKY_SLOPE, check_height_images, encode_heights, scaled_channels
+from ldm_rl.models.blocks import LEAKY_SLOPE, scaled_channels
 
 require_equivariant_q()  # one line naming the extra, not a traceback
 try:
@@ -258,18 +258,9 @@ class EquivariantQFCN(nn.Module):
     # ------------------------------------------------------------------------------------------
     def _inputs(self, heightmap, in_hand, holding):
         """Validate and encode; -> batch shape, [N, 1, H, W], [N, 1, h, h] (encoded), [N] bool."""
-        size, hand_size = geometry.HEIGHTMAP_SIZE, geometry.HAND_SIZE
-        batch = check_height_images(heightmap, "heightmap", size)
-        check_height_images(in_hand, "in_hand", hand_size, batch)
-        expected = f"bool [*B] or [*B, 1] with *B = {tuple(batch)}"
-        if not torch.is_tensor(holding) or holding.dtype != torch.bool:
-            raise ValueError(f"holding must be {expected}, got {getattr(holding, 'dtype', type(holding).__name__)}")
-        if holding.shape not in (batch, batch + (1,)):
-            raise ValueError(f"holding must be {expected}, got shape {tuple(holding.shape)}")
-        dtype = self.lift.weights.dtype
-        x = encode_heights(heightmap.reshape(-1, 1, size, size), self.max_height, self.num_classes, dtype)
-        hand = encode_heights(in_hand.reshape(-1, 1, hand_size, hand_size), self.max_height, self.num_classes, dtype)
-        return batch, x, hand, holding.reshape(-1)
+        from ldm_rl.models.q_fcn import encode_q_inputs
+
+        return encode_q_inputs(heightmap, in_hand, holding, self.max_height, self.num_classes, self.lift.weights.dtype)
 
     def _chunks(self, n: int, device: torch.device) -> list[slice]:
         step = self.CHUNK_SAMPLES if device.type == "cpu" else max(1, n)

@@ -141,6 +141,24 @@ def check_q_action(action, batch: tuple, num_rotations: int) -> torch.Tensor:
     return action
 
 
+def encode_q_inputs(heightmap, in_hand, holding, max_height: float, num_classes: int, dtype: torch.dtype):
+    """A Q network's inputs checked and encoded: ``heightmap`` ``[*B, 1, 128, 128]``, ``in_hand``
+    ``[*B, 1, h, h]`` (metres), ``holding`` bool ``[*B]`` or ``[*B, 1]`` -> (``*B``, ``[N, 1, 128, 128]``,
+    ``[N, 1, h, h]`` encoded heights in ``dtype`` (:func:`blocks.encode_heights`), ``[N]`` bool),
+    N = prod(*B); one ValueError naming what is wrong."""
+    size, hand_size = geometry.HEIGHTMAP_SIZE, geometry.HAND_SIZE
+    batch = check_height_images(heightmap, "heightmap", size)
+    check_height_images(in_hand, "in_hand", hand_size, batch)
+    expected = f"bool [*B] or [*B, 1] with *B = {tuple(batch)}"
+    if not torch.is_tensor(holding) or holding.dtype != torch.bool:
+        raise ValueError(f"holding must be {expected}, got {getattr(holding, 'dtype', type(holding).__name__)}")
+    if holding.shape not in (batch, batch + (1,)):
+        raise ValueError(f"holding must be {expected}, got shape {tuple(holding.shape)}")
+    x = encode_heights(heightmap.reshape(-1, 1, size, size), max_height, num_classes, dtype)
+    hand = encode_heights(in_hand.reshape(-1, 1, hand_size, hand_size), max_height, num_classes, dtype)
+    return batch, x, hand, holding.reshape(-1)
+
+
 class QFCN(CompiledInference, nn.Module):
     """Pick/place Q maps over all pixels and R rotation bins. See the module docstring.
 
@@ -293,18 +311,7 @@ class QFCN(CompiledInference, nn.Module):
     # ------------------------------------------------------------------------------------------
     def _inputs(self, heightmap, in_hand, holding):
         """Validate and encode; -> batch shape, [N, 1, H, W], [N, 1, h, h] (encoded), [N] bool."""
-        size, hand_size = geometry.HEIGHTMAP_SIZE, geometry.HAND_SIZE
-        batch = check_height_images(heightmap, "heightmap", size)
-        check_height_images(in_hand, "in_hand", hand_size, batch)
-        expected = f"bool [*B] or [*B, 1] with *B = {tuple(batch)}"
-        if not torch.is_tensor(holding) or holding.dtype != torch.bool:
-            raise ValueError(f"holding must be {expected}, got {getattr(holding, 'dtype', type(holding).__name__)}")
-        if holding.shape not in (batch, batch + (1,)):
-            raise ValueError(f"holding must be {expected}, got shape {tuple(holding.shape)}")
-        dtype = self.conv_1[0].weight.dtype
-        x = encode_heights(heightmap.reshape(-1, 1, size, size), self.max_height, self.num_classes, dtype)
-        hand = encode_heights(in_hand.reshape(-1, 1, hand_size, hand_size), self.max_height, self.num_classes, dtype)
-        return batch, x, hand, holding.reshape(-1)
+        return encode_q_inputs(heightmap, in_hand, holding, self.max_height, self.num_classes, self.conv_1[0].weight.dtype)
 
     def _chunks(self, x: torch.Tensor, images_per_sample: int) -> list[slice]:
         """On CPU, slices of at most ``CHUNK_IMAGES`` trunk images (whole samples; big batches thrash
