@@ -202,7 +202,10 @@ def test_generalization_table_evaluates_a_smoke_checkpoint_beside_the_paper(smok
     ldm = next(line for line in text.splitlines() if line.startswith("| LDM |")).split(" | ")
     assert ldm[2] == "99" and ldm[4] == "84" and ldm[6] == "86" and ldm[8].rstrip(" |") == "65"
     assert re.fullmatch(r"\d+\.\d \[\d+\.\d–\d+\.\d\] \(k=1, n=2\)", ldm[1]) and ldm[5] == "–"
-    assert next(line for line in text.splitlines() if line.startswith("| FC-DQN |")).count("n/a") == 4
+    fcdqn = next(line for line in text.splitlines() if line.startswith("| FC-DQN |")).split(" | ")
+    assert (fcdqn[2], fcdqn[4], fcdqn[6], fcdqn[8].rstrip(" |")) == ("98", "89", "82", "48")
+    rs = next(line for line in text.splitlines() if line.startswith("| RS |")).split(" | ")
+    assert (rs[2], rs[4], rs[6], rs[8].rstrip(" |")) == ("48", "23", "8", "4")
     written = sorted(out.rglob("evaluation.json"))
     results = [json.loads(p.read_text()) for p in written]
     assert [(r["num_objects"], r["trained_on"], r["episodes"]) for r in results] == [(4, 3, 2), (5, 3, 2)]

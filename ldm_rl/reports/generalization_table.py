@@ -37,10 +37,13 @@ TRAINED_ON = {"block_stacking": 3, "bottle_arrangement": 4}
 UNITS = {"block_stacking": "blocks", "bottle_arrangement": "bottles"}
 AGENTS = {"ldm": "LDM", "fcdqn": "FC-DQN", "rs": "RS", "dynaq": "Dyna-Q"}
 TABLE_AGENTS = ("ldm", "fcdqn", "rs")  # the paper's rows
-# the paper's Table 2 (success %, 100 episodes), by agent and (task, objects). Only the LDM row could be checked
-# against a source at hand; the FC-DQN and RS numbers were not, and the paper has no Dyna-Q row: those read n/a.
+# the paper's Table 2 (success %, 100 episodes), by agent and (task, objects); the paper has no Dyna-Q row (n/a)
 PAPER = {"ldm": {("block_stacking", 4): 99, ("block_stacking", 5): 84,
-                 ("bottle_arrangement", 5): 86, ("bottle_arrangement", 6): 65}}
+                 ("bottle_arrangement", 5): 86, ("bottle_arrangement", 6): 65},
+         "fcdqn": {("block_stacking", 4): 98, ("block_stacking", 5): 89,
+                   ("bottle_arrangement", 5): 82, ("bottle_arrangement", 6): 48},
+         "rs": {("block_stacking", 4): 48, ("block_stacking", 5): 23,
+                ("bottle_arrangement", 5): 8, ("bottle_arrangement", 6): 4}}
 
 
 @dataclass(frozen=True)
@@ -258,8 +261,8 @@ def markdown(evaluations: list[Evaluation], notes: list[str] | None = None,
             paper = PAPER.get(agent, {}).get((protocol.task, n))
             cells.append("n/a" if paper is None else str(paper))
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "–: not evaluated here. n/a: no paper number to compare with (the paper's FC-DQN and RS numbers could "
-              "not be checked against a source at hand; its table has no Dyna-Q row).", "", "Per checkpoint:", "",
+    lines += ["", "–: not evaluated here. n/a: no paper number to compare with (the paper's table has no Dyna-Q row).",
+              "", "Per checkpoint:", "",
               "| agent | seed | task | trained on | evaluated on | success (%) | 95 % interval (%) | episodes | mean length "
               "(primitives) | checkpoint |", "|---|---|---|---|---|---|---|---|---|---|"]
     for ev in sorted(evaluations, key=lambda e: (e.task, list(AGENTS).index(e.agent) if e.agent in AGENTS else 9,
