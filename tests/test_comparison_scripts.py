@@ -244,3 +244,38 @@ def test_sample_efficiency_figure_is_mean_and_standard_error_over_seeds_of_one_t
     assert float(naive[0]["se"]) == 0.0 and float(naive[1]["mean"]) == pytest.approx(0.46)
     with pytest.raises(SystemExit, match="no run of task 'house_building'"):
         plot_sample_efficiency.main([str(tmp_path), "--task", "house_building"])
+
+
+def test_the_documented_comparison_is_what_the_script_rebuilds_from_the_kept_runs(tmp_path):
+    """docs/results/policy/comparison.md and its table in docs/policy.md come from the kept curve and
+    final-metrics files alone (a results folder: no run folders, no configs)."""
+    results = ROOT / "docs" / "results" / "policy"
+    table = tmp_path / "comparison.md"
+    plot_learning_curves.main([str(results), "--out", str(tmp_path / "curves.png"), "--table", str(table)])
+    rebuilt = table.read_text()
+    assert rebuilt == (results / "comparison.md").read_text()
+    rows = [line for line in rebuilt.splitlines() if line.startswith("| ")]
+    assert len(rows) > 2 and all(row in (ROOT / "docs" / "policy.md").read_text() for row in rows)
+
+
+def test_a_results_folder_names_its_lines_by_tag_and_reads_the_final_weights(tmp_path):
+    def keep(stem, seed, points, final):
+        with open(tmp_path / f"{stem}_curve.csv", "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["updates", "episodes", "success_rate"])
+            writer.writerows([10 * i, e, s] for i, (e, s) in enumerate(points))
+        (tmp_path / f"{stem}_final_metrics.json").write_text(json.dumps(
+            {"task": "ldm_rl/BlockStacking-v0", "num_objects": 3, "agent": "ldm", "seed": seed, "episodes": points[-1][0],
+             "success_rate": final}))
+
+    keep("curves_block_stacking_ldm_seed0_mix23", 0, [(0, 0.0), (10, 0.6), (20, 0.9), (20, 0.9)], 0.9)
+    keep("curves_block_stacking_ldm_seed1_mix23", 1, [(0, 0.0), (10, 0.2), (20, 0.7), (20, 0.7)], 0.7)
+    keep("curves_block_stacking_ldm_seed0_first", 0, [(0, 0.0), (20, 0.1)], 0.1)
+    (tmp_path / "curves_block_stacking_ldm_seed2_mix23_curve.csv").write_text("episodes,success_rate\n0,0.0\n")  # unfinished
+    table = tmp_path / "t.md"
+    plot_learning_curves.main([str(tmp_path), "--out", str(tmp_path / "c.png"), "--table", str(table)])
+    rows = {line.split(" | ")[1]: line.split(" | ") for line in table.read_text().splitlines()[2:]}
+    assert set(rows) == {"LDM [mix23]", "LDM [first]"}
+    # mean curve 0, 0.4, 0.8: 0.5 first reached at 20 episodes; final weights 0.8 ± 0.1 (two seeds)
+    assert rows["LDM [mix23]"][2:] == ["0, 1", "20", "20", "0.80 ± 0.10", "20", "0.94 |"]
+    assert rows["LDM [first]"][3:5] == ["never", "never"]

@@ -13,14 +13,23 @@ set it: a run stopped by a wall-clock budget joins the seeds of a preset with an
 whose configs differ elsewhere (e.g. two sweeps with different ``agent.lr.q``) get separate lines, each labelled
 with its values of the keys that differ.
 Writes the figure (PNG) and a CSV of the plotted points (task, objects, agent, label, episodes, mean, se,
-n_seeds); default ``<first folder>/learning_curves.png`` and ``.csv``.
+n_seeds); default ``<first folder>/learning_curves.png`` and ``.csv``; ``--table T.md`` also writes the
+comparison table (one row per line: seeds, episodes to a mean success of 0.5 and 0.8, the final weights'
+success on 100 held-out episodes, the paper's end value).
+
+A folder may also be a results folder (``docs/results/policy``): the finished runs kept there as
+``curves_<task>_<agent>_seed<k>[_<tag>]_curve.csv`` beside their ``_final_metrics.json`` (which names the task,
+object count, agent and seed); the tag, if any, names the line (``LDM [mix23]``), so the figure and the table
+are rebuilt from the repository's files without the runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
+import re
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +50,15 @@ AGENTS = {"ldm": ("LDM", "C0"), "fcdqn": ("FC-DQN", "C1"), "rs": ("RS", "C2"), "
 BUDGET_KEYS = ("seed", "resume", "schedule.total_episodes", "schedule.max_wall_clock_s", "schedule.checkpoint_every",
                "schedule.progress", "logger", "threads", "device", "hydra", "replay.scratch_dir")
 CSV_FIELDS = ("task", "num_objects", "agent", "label", "episodes", "mean", "se", "n_seeds")
+# the paper's end values (3 seeds, read from the authors' project page, ±0.03): success rate; bin packing its reward
+PAPER_END = {
+    "ldm_rl/BlockStacking-v0": {"ldm": 0.94, "fcdqn": 0.87, "dynaq": 0.72, "rs": 0.52},
+    "ldm_rl/HouseBuilding-v0": {"ldm": 0.84, "fcdqn": 0.62, "dynaq": 0.24, "rs": 0.08},
+    "ldm_rl/BottleArrangement-v0": {"ldm": 0.86, "fcdqn": 0.72, "dynaq": 0.39, "rs": 0.10},
+    "ldm_rl/BinPacking-v0": {"ldm": 0.58, "fcdqn": 0.62, "dynaq": 0.11, "rs": 0.02},
+}
+# a finished run kept in a results folder: its curve; the final metrics beside it name what it is
+RESULT_CURVE = re.compile(r"curves_[a-z_]+?_(?:ldm|fcdqn|rs|dynaq)_seed\d+(?:_(?P<tag>[A-Za-z0-9.]+))?_curve\.csv")
 
 
 @dataclass
@@ -55,16 +73,54 @@ class Run:
     config: dict[str, str]  # the resolved config as dotted key -> value text, without BUDGET_KEYS
     episodes: list[float] = field(default_factory=list)
     success: list[float] = field(default_factory=list)
+    tag: str | None = None  # a results folder's run: the name of its line (None: lines from the configs)
+    final: dict | None = None  # its final_metrics.json, when there is one
+
+
+def _result_curves(folder: Path) -> list[Path]:
+    """The finished runs' curves kept in a results folder (those with a ``_final_metrics.json`` beside them)."""
+    return [p for p in sorted(folder.glob("curves_*_curve.csv"))
+            if RESULT_CURVE.fullmatch(p.name) and _final_of(p).is_file()]
+
+
+def _final_of(curve: Path) -> Path:
+    return curve.with_name(curve.name[: -len("_curve.csv")] + "_final_metrics.json")
 
 
 def _run_folders(paths: list[Path]) -> list[Path]:
-    """Every folder holding a curve.csv at or below ``paths``."""
+    """Every folder holding a curve.csv at or below ``paths``, and every finished run's curve file of a results
+    folder among ``paths``."""
     found: list[Path] = []
     for path in paths:
         if not path.is_dir():
             raise ValueError(f"{path}: not a folder (give a multirun sweep folder or run folders of train_policy.py)")
-        found += [p.parent for p in sorted(path.rglob("curve.csv"))]
+        found += [p.parent for p in sorted(path.rglob("curve.csv"))] + _result_curves(path)
     return sorted(set(found))
+
+
+def _read_curve(path: Path, run: Run) -> Run:
+    """``run`` with the (episodes, success rate) points of the curve CSV ``path``: one per episode count, the
+    last evaluation at that count (e.g. the final 100-episode one)."""
+    points: dict[float, float] = {}
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            points[float(row["episodes"])] = float(row["success_rate"])
+    if not points:
+        raise ValueError(f"{path}: no evaluation rows yet")
+    run.episodes, run.success = zip(*sorted(points.items()))
+    return run
+
+
+def read_result(curve: Path) -> Run:
+    """A finished run kept in a results folder (``curves_..._curve.csv`` and its ``_final_metrics.json``)."""
+    final = json.loads(_final_of(curve).read_text())
+    missing = [key for key in ("task", "num_objects", "agent", "seed") if key not in final]
+    if missing:
+        raise ValueError(f"{_final_of(curve)}: lacks {', '.join(missing)} (not a final_metrics.json of train_policy.py)")
+    tag = RESULT_CURVE.fullmatch(curve.name).group("tag")
+    run = Run(curve, str(final["task"]), int(final["num_objects"]), str(final["agent"]), int(final["seed"]), {},
+              tag=tag or "", final=final)
+    return _read_curve(curve, run)
 
 
 def _flat(node, prefix: str = "") -> dict[str, str]:
@@ -84,20 +140,17 @@ def read_run(folder: Path) -> Run:
     (one curve point per episode count: the last evaluation at that count, e.g. the final 100-episode one)."""
     from omegaconf import OmegaConf
 
+    if folder.is_file():
+        return read_result(folder)
     config_file = folder / ".hydra" / "config.yaml"
     if not config_file.is_file():
         raise ValueError(f"{folder}: has curve.csv but no .hydra/config.yaml (not a run of recipes/train_policy.py)")
     cfg = OmegaConf.load(config_file)
     config = _flat(OmegaConf.to_container(cfg, resolve=False))
     run = Run(folder, str(cfg.env.id), int(cfg.env.num_objects), str(cfg.agent.name), int(cfg.seed), config)
-    points: dict[float, float] = {}
-    with open(folder / "curve.csv", newline="") as f:
-        for row in csv.DictReader(f):
-            points[float(row["episodes"])] = float(row["success_rate"])
-    if not points:
-        raise ValueError(f"{folder / 'curve.csv'}: no evaluation rows yet")
-    run.episodes, run.success = zip(*sorted(points.items()))
-    return run
+    final = folder / "final_metrics.json"
+    run.final = json.loads(final.read_text()) if final.is_file() else None
+    return _read_curve(folder / "curve.csv", run)
 
 
 def mean_curve(runs: list[Run]) -> list[tuple[float, float, float]]:
@@ -141,6 +194,9 @@ def group(runs: list[Run]) -> dict[tuple[str, int], dict[str, list[Run]]]:
             name = AGENTS.get(agent, (agent,))[0]
             variants: dict[str, list[Run]] = defaultdict(list)
             for run in members:
+                if run.tag is not None:  # a results folder's run: its file's tag names the line
+                    variants[f"{name} [{run.tag}]" if run.tag else name].append(run)
+                    continue
                 values = ", ".join(f"{k}={run.config[k]}" for k in differ)
                 variants[f"{name} ({values})" if values else name].append(run)
             for label in sorted(variants):
@@ -212,14 +268,49 @@ def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
     return rows
 
 
+def _first_reaching(points: list[tuple[float, float, float]], level: float) -> str:
+    return next((f"{x:g}" for x, mean, _ in points if mean >= level), "never")
+
+
+def _mean_se(values: list[float]) -> str:
+    mean = sum(values) / len(values)
+    if len(values) == 1:
+        return f"{mean:.2f}"
+    se = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1) / len(values))
+    return f"{mean:.2f} ± {se:.2f}"
+
+
+def comparison_table(panels: dict) -> str:
+    """The comparison as a markdown table: one row per line of the figure (task, agent and tag), with the
+    episodes at which its mean curve first reaches 0.5 and 0.8 (in-training evaluations), the final weights'
+    success on the final evaluation (mean ± standard error over seeds, from final_metrics.json) after how
+    many training episodes, and the paper's end value."""
+    lines = ["| task | agent | seeds | first mean ≥ 0.5 (episodes) | first mean ≥ 0.8 (episodes) | final weights: success "
+             "(mean ± s.e.) | after (episodes) | paper's end value |", "|---|---|---|---|---|---|---|---|"]
+    for (task, objects), by_label in panels.items():
+        for label, runs in by_label.items():
+            points = mean_curve(runs)
+            finals = [run.final for run in runs if run.final is not None]
+            end = _mean_se([float(f["success_rate"]) for f in finals]) if len(finals) == len(runs) else "–"
+            after = sorted({int(f["episodes"]) for f in finals})
+            paper = PAPER_END.get(task, {}).get(runs[0].agent)
+            lines.append(f"| {panel_title(task, objects)} | {label} | {', '.join(str(r.seed) for r in runs)} | "
+                         f"{_first_reaching(points, 0.5)} | {_first_reaching(points, 0.8)} | {end} | "
+                         f"{', '.join(map(str, after)) or '–'} | {'–' if paper is None else f'{paper:.2f}'} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.plot_learning_curves", description=__doc__.splitlines()[0])
     parser.add_argument("folders", nargs="+", type=Path, help="multirun sweep folder(s) or run folders of train_policy.py")
     parser.add_argument("--out", type=Path, default=None,
                         help="figure path (.png; the CSV goes beside it, .csv); default <first folder>/learning_curves.png")
+    parser.add_argument("--table", type=Path, default=None, help="also write the comparison table (markdown) here (.md)")
     args = parser.parse_args(argv)
     if args.out is not None and args.out.suffix.lower() != ".png":
         parser.error(f"--out {args.out}: expected a .png path")
+    if args.table is not None and args.table.suffix.lower() != ".md":
+        parser.error(f"--table {args.table}: expected a .md path")
     try:
         runs = [read_run(folder) for folder in _run_folders(args.folders)]
         if not runs:
@@ -236,6 +327,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
             print(f"{panel_title(task, objects)}, {label}: {len(line)} seed(s) up to {last['episodes']:g} episodes "
                   f"(the shortest run), success {last['mean']:.2f}{se}")
     print(f"written to {png} and {png.with_suffix('.csv')}")
+    if args.table is not None:
+        with atomic_path(args.table) as tmp:
+            tmp.write_text(comparison_table(panels))
+        print(f"comparison table written to {args.table}")
     return rows
 
 
