@@ -279,3 +279,34 @@ def test_a_results_folder_names_its_lines_by_tag_and_reads_the_final_weights(tmp
     # mean curve 0, 0.4, 0.8: 0.5 first reached at 20 episodes; final weights 0.8 ± 0.1 (two seeds)
     assert rows["LDM [mix23]"][2:] == ["0, 1", "20", "20", "0.80 ± 0.10", "20", "0.94 |"]
     assert rows["LDM [first]"][3:5] == ["never", "never"]
+
+
+def test_the_documented_zero_shot_table_is_what_the_script_rebuilds_from_the_kept_results(tmp_path):
+    """docs/results/policy/generalization.md and its pooled rows in docs/policy.md come from the kept
+    curves_..._generalization.json files alone (no checkpoint is needed or evaluated)."""
+    results = ROOT / "docs" / "results" / "policy"
+    text = generalization_table.main([str(results), "--agents", "ldm,fcdqn,rs,dynaq", "--out", str(tmp_path)])
+    assert text == (results / "generalization.md").read_text()
+    pooled = [line for line in text.split("Per checkpoint:")[0].splitlines() if line.startswith("| ") and "[" in line[:20]]
+    assert len(pooled) >= 4 and all(row in (ROOT / "docs" / "policy.md").read_text() for row in pooled)
+
+
+def test_kept_zero_shot_results_are_rows_of_their_tag_and_bad_ones_one_error(tmp_path):
+    def entry(n, successes, checkpoint):
+        return {"checkpoint": checkpoint, "task": "ldm_rl/BlockStacking-v0", "num_objects": n, "trained_on": 3,
+                "agent": "ldm", "episodes": 100, "successes": successes, "mean_length": 8.0}
+
+    for seed, (four, five) in enumerate([(60, 30), (80, 50)]):
+        (tmp_path / f"curves_block_stacking_ldm_seed{seed}_mix23_generalization.json").write_text(json.dumps(
+            {"final_n4": entry(4, four, f"s{seed}/checkpoint.pt"), "final_n5": entry(5, five, f"s{seed}/checkpoint.pt")}))
+    (tmp_path / "curves_block_stacking_ldm_seed0_first_generalization.json").write_text(json.dumps(
+        {"final_n4": entry(4, 10, "old/checkpoint.pt")}))
+    text = generalization_table.main([str(tmp_path), "--out", str(tmp_path / "out")])
+    rows = {line.split(" | ")[0][2:]: line.split(" | ") for line in text.split("Per checkpoint:")[0].splitlines()
+            if line.startswith("| LDM")}
+    assert set(rows) == {"LDM [first]", "LDM [mix23]"}
+    assert rows["LDM [mix23]"][1] == "70.0 [63.3–75.9] (k=2, n=200)" and rows["LDM [mix23]"][3].startswith("40.0 ")
+    assert rows["LDM [first]"][1].startswith("10.0 ") and rows["LDM [first]"][3] == "–"
+    (tmp_path / "curves_block_stacking_ldm_seed0_first_generalization.json").write_text(json.dumps({"best": {}}))
+    with pytest.raises(SystemExit):
+        generalization_table.main([str(tmp_path), "--out", str(tmp_path / "out")])

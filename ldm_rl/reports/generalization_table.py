@@ -13,6 +13,11 @@ their episode count differs from ``--episodes`` or the checkpoint is newer. Ever
 (evaluate.py's ``seed``). Writes ``DIR/generalization.md`` (default ``DIR``: ``<first folder>/generalization``):
 the success rate (%) with its 95 % Wilson interval per agent and object count, pooled over the agent's
 checkpoints, beside the paper's Table 2 number; then one row per checkpoint and object count.
+
+A folder may also be a results folder (``docs/results/policy``): the zero-shot evaluations kept there as
+``curves_<task>_<agent>_seed<k>_<tag>_generalization.json`` (``{"final_n<objects>": <evaluation.json>, ...}``)
+are read as they are, and each tag is a row of its own (``LDM [mix23]``), so the table is rebuilt from the
+repository's files without checkpoints or runs.
 """
 
 from __future__ import annotations
@@ -74,6 +79,33 @@ class Evaluation:
     successes: int
     mean_length: float
     seed: int | None
+    tag: str | None = None  # a kept evaluation's tag: its row of the table (None: the agent's row)
+
+    @property
+    def row(self) -> str:
+        name = AGENTS.get(self.agent, self.agent)
+        return name if self.tag is None else f"{name} [{self.tag}]"
+
+
+# a kept zero-shot result in a results folder
+KEPT = re.compile(r"curves_[a-z_]+?_(?P<agent>ldm|fcdqn|rs|dynaq)_seed(?P<seed>\d+)_(?P<tag>[A-Za-z0-9.]+)_generalization\.json")
+
+
+def read_kept(path: Path) -> list[Evaluation]:
+    """The evaluations of a kept ``curves_..._<tag>_generalization.json`` (seed and tag from its name)."""
+    match = KEPT.fullmatch(path.name)
+    try:
+        entries = json.loads(path.read_text())
+        out = []
+        for key, data in entries.items():
+            if not re.fullmatch(r"final_n\d+", key):
+                raise ValueError(f"entry {key!r} (expected final_n<objects>)")
+            out.append(Evaluation(path, str(data["checkpoint"]), data["agent"], data["task"], int(data["trained_on"]),
+                                  int(data["num_objects"]), int(data["episodes"]), int(data["successes"]),
+                                  float(data["mean_length"]), int(match.group("seed")), match.group("tag")))
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
+        raise ValueError(f"{path}: not a kept zero-shot result ({type(err).__name__}: {err})") from None
+    return out
 
 
 def protocols(conf: Path = ROOT / "conf") -> dict[str, Protocol]:
@@ -105,9 +137,10 @@ def _uses_plus(conf: Path = ROOT / "conf") -> bool:
     return not any(isinstance(d, dict) and "experiment" in d for d in defaults)
 
 
-def find_inputs(paths: list[Path]) -> tuple[list[Path], list[Path], list[Path]]:
-    """(checkpoints given as files, checkpoints found below folders, evaluation.json files below folders)."""
-    files, found, evaluations = [], [], []
+def find_inputs(paths: list[Path]) -> tuple[list[Path], list[Path], list[Path], list[Path]]:
+    """(checkpoints given as files, checkpoints found below folders, evaluation.json files below folders, kept
+    zero-shot results in the folders)."""
+    files, found, evaluations, kept = [], [], [], []
     for path in paths:
         if path.is_file():
             if path.suffix != ".pt":
@@ -116,9 +149,10 @@ def find_inputs(paths: list[Path]) -> tuple[list[Path], list[Path], list[Path]]:
         elif path.is_dir():
             found += [p.resolve() for p in sorted(path.rglob("checkpoint.pt"))]
             evaluations += [p.resolve() for p in sorted(path.rglob("evaluation.json"))]
+            kept += [p.resolve() for p in sorted(path.glob("curves_*_generalization.json")) if KEPT.fullmatch(p.name)]
         else:
             raise ValueError(f"{path}: no such file or folder")
-    return files, sorted(set(found) - set(files)), sorted(set(evaluations))
+    return files, sorted(set(found) - set(files)), sorted(set(evaluations)), sorted(set(kept))
 
 
 def checkpoint_info(path: Path) -> dict:
@@ -176,7 +210,7 @@ def gather(paths: list[Path], out: Path, *, episodes: int, seed: int,
     """Every evaluation of the table: read where written and fresh, run (recipes/evaluate.py) where not.
     Returns the evaluations (one per checkpoint and object count) and notes on what was left out."""
     table = protocols()
-    files, found, json_files = find_inputs(paths)
+    files, found, json_files, kept = find_inputs(paths)
     json_files = sorted(set(json_files) | {p.resolve() for p in (out / "evaluations").rglob("evaluation.json")})
     notes: list[str] = []
     written: dict[tuple[str, int], Evaluation] = {}
@@ -216,7 +250,8 @@ def gather(paths: list[Path], out: Path, *, episodes: int, seed: int,
             for n in missing:
                 written[(str(checkpoint), n)] = read_evaluation(target / f"objects-{n}" / "evaluation.json")
     evaluations = []
-    for (_, n), ev in sorted(written.items()):
+    kept_evaluations = [ev for path in kept for ev in read_kept(path)]
+    for (_, n), ev in sorted(written.items()) + [((ev.checkpoint, ev.num_objects), ev) for ev in kept_evaluations]:
         protocol = table.get(ev.task)
         if protocol is None or ev.trained_on != protocol.trained_on or n not in protocol.counts:
             notes.append(f"left out {ev.path}: {ev.agent} trained on {ev.trained_on}, evaluated on {n} objects of {ev.task} "
@@ -240,18 +275,22 @@ def markdown(evaluations: list[Evaluation], notes: list[str] | None = None,
     columns = [(p, n) for p in table.values() for n in p.counts]
     pooled: dict[tuple[str, str, int], list[Evaluation]] = defaultdict(list)
     for ev in evaluations:
-        pooled[(ev.agent, ev.task, ev.num_objects)].append(ev)
-    agents = sorted(set(agents) | {ev.agent for ev in evaluations}, key=lambda a: list(AGENTS).index(a))
+        pooled[(ev.row, ev.task, ev.num_objects)].append(ev)
+    # one row per agent (and per tag of the kept results): the paper's agents first, each agent's rows together
+    rows = {AGENTS[a]: a for a in agents if not any(ev.agent == a and ev.tag is not None for ev in evaluations)}
+    rows.update({ev.row: ev.agent for ev in evaluations})
+    order = list(AGENTS)
+    rows = dict(sorted(rows.items(), key=lambda item: (order.index(item[1]), item[0])))
     trained = ", ".join(f"{p.trained_on} {UNITS[p.task]} for {p.task.replace('_', ' ')}" for p in table.values())
     lines = ["Zero-shot generalization (the paper's Table 2): greedy success rate (%) on more objects than in training "
              f"(trained on {trained}), with its 95 % Wilson interval in brackets, pooled over each agent's checkpoints "
              "(k checkpoints, n episodes in all); the paper's number (100 episodes) beside it.", ""]
     header = ["agent"] + [h for p, n in columns for h in (f"{n} {UNITS[p.task]}", "paper")]
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for agent in agents:
-        cells = [AGENTS.get(agent, agent)]
+    for row, agent in rows.items():
+        cells = [row]
         for protocol, n in columns:
-            group = pooled.get((agent, protocol.env_id, n), [])
+            group = pooled.get((row, protocol.env_id, n), [])
             if group:
                 successes, episodes = sum(ev.successes for ev in group), sum(ev.episodes for ev in group)
                 low, high = wilson_interval(successes, episodes)
@@ -266,10 +305,10 @@ def markdown(evaluations: list[Evaluation], notes: list[str] | None = None,
               "| agent | seed | task | trained on | evaluated on | success (%) | 95 % interval (%) | episodes | mean length "
               "(primitives) | checkpoint |", "|---|---|---|---|---|---|---|---|---|---|"]
     for ev in sorted(evaluations, key=lambda e: (e.task, list(AGENTS).index(e.agent) if e.agent in AGENTS else 9,
-                                                 e.seed if e.seed is not None else -1, e.checkpoint, e.num_objects)):
+                                                 e.row, e.seed if e.seed is not None else -1, e.checkpoint, e.num_objects)):
         low, high = wilson_interval(ev.successes, ev.episodes)
         seed = "?" if ev.seed is None else str(ev.seed)
-        lines.append(f"| {AGENTS.get(ev.agent, ev.agent)} | {seed} | {ev.task} | {ev.trained_on} | {ev.num_objects} | "
+        lines.append(f"| {ev.row} | {seed} | {ev.task} | {ev.trained_on} | {ev.num_objects} | "
                      f"{_pct(ev.successes / ev.episodes)} | {_pct(low)}–{_pct(high)} | {ev.episodes} | "
                      f"{ev.mean_length:.2f} | {ev.checkpoint} |")
     if notes:
