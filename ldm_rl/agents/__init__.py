@@ -57,16 +57,29 @@ def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_netw
     return PLANNERS[name]()(q_network, dynamics, value_network, **kwargs)
 
 
+def _dynamics_loss(loss_cfg: Mapping[str, Any], dynamics):
+    """The LDM's focal loss of ``cfg.loss`` (class weights: null | auto | a list of K floats), writing the
+    frame logits the agents reuse."""
+    import torch
+
+    from ldm_rl.objectives import LDMLoss
+
+    loss_cfg = _plain(loss_cfg)
+    class_weights = loss_cfg.get("class_weights")
+    if class_weights is not None and not isinstance(class_weights, str):
+        class_weights = torch.tensor(list(class_weights), dtype=torch.float32)
+    return LDMLoss(dynamics, gamma=float(loss_cfg.get("gamma", 2.0)), class_weights=class_weights,
+                   label_smoothing=float(loss_cfg.get("label_smoothing", 0.0)), write_logits=True)
+
+
 def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     """The paper's agent from ``cfg.model`` (the LDM), ``cfg.loss`` (its focal loss), ``cfg.agent``
     (Q/V presets, targets, optimisation) and ``cfg.planner`` (which planner, :data:`PLANNERS`, and its
     proposals and schedules)."""
-    import torch
-
     from ldm_rl.agents.ldm import LDMAgent
     from ldm_rl.models.q_fcn import build_q_network
     from ldm_rl.models.v_cnn import build_value_network
-    from ldm_rl.objectives import LDMLoss, LookaheadLoss
+    from ldm_rl.objectives import LookaheadLoss
     from ldm_rl.world_model import build_dynamics_model
 
     agent_cfg = _plain(cfg["agent"])
@@ -93,12 +106,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         value_augmentation=agent_cfg.get("value_augmentation"),
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
     )
-    loss_cfg = _plain(cfg["loss"])
-    class_weights = loss_cfg.get("class_weights")
-    if class_weights is not None and not isinstance(class_weights, str):
-        class_weights = torch.tensor(list(class_weights), dtype=torch.float32)
-    dynamics_loss = LDMLoss(dynamics, gamma=float(loss_cfg.get("gamma", 2.0)), class_weights=class_weights,
-                            label_smoothing=float(loss_cfg.get("label_smoothing", 0.0)), write_logits=True)
+    dynamics_loss = _dynamics_loss(cfg["loss"], dynamics)
     return LDMAgent(
         planner, loss, dynamics_loss,
         lr=dict(agent_cfg["lr"]), weight_decay=dict(agent_cfg.get("weight_decay") or {}),
@@ -133,22 +141,14 @@ def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
 
 def _model_and_value(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
     """(LDM, its focal loss writing the frame logits, V CNN with its reward head) from ``cfg``."""
-    import torch
-
     from ldm_rl.models.v_cnn import build_value_network
-    from ldm_rl.objectives import LDMLoss
     from ldm_rl.world_model import build_dynamics_model
 
     dynamics = build_dynamics_model(cfg["model"], max_height)
     preset = agent_cfg.get("preset") or cfg["model"].get("preset", "lite")
     value_network = build_value_network(preset, max_height=float(max_height), num_classes=dynamics.num_classes,
                                         width=agent_cfg.get("value_width"))
-    loss_cfg = _plain(cfg["loss"])
-    class_weights = loss_cfg.get("class_weights")
-    if class_weights is not None and not isinstance(class_weights, str):
-        class_weights = torch.tensor(list(class_weights), dtype=torch.float32)
-    dynamics_loss = LDMLoss(dynamics, gamma=float(loss_cfg.get("gamma", 2.0)), class_weights=class_weights,
-                            label_smoothing=float(loss_cfg.get("label_smoothing", 0.0)), write_logits=True)
+    dynamics_loss = _dynamics_loss(cfg["loss"], dynamics)
     return dynamics, dynamics_loss, value_network
 
 
