@@ -15,7 +15,7 @@ the success rate (%) with its 95 % Wilson interval per agent and object count, p
 checkpoints, beside the paper's Table 2 number; then one row per checkpoint and object count.
 
 A folder may also be a results folder (``docs/results/policy``): the zero-shot evaluations kept there as
-``curves_<task>_<agent>_seed<k>_<tag>_generalization.json`` (``{"final_n<objects>": <evaluation.json>, ...}``)
+``curves_<task>_<agent>_seed<k>[_<tag>]_generalization.json`` (``{"final_n<objects>": <evaluation.json>, ...}``)
 are read as they are, and each tag is a row of its own (``LDM [mix23]``), so the table is rebuilt from the
 repository's files without checkpoints or runs.
 """
@@ -34,6 +34,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository (conf/, recipes/)
 from ldm_rl.evaluation import wilson_interval
+from ldm_rl.reports import kept_file
 from ldm_rl.run.outputs import atomic_write_text
 
 EVALUATE = ROOT / "recipes" / "evaluate.py"
@@ -88,7 +89,7 @@ class Evaluation:
 
 
 # a kept zero-shot result in a results folder
-KEPT = re.compile(r"curves_[a-z_]+?_(?P<agent>ldm|fcdqn|rs|dynaq)_seed(?P<seed>\d+)_(?P<tag>[A-Za-z0-9.]+)_generalization\.json")
+KEPT = kept_file("generalization.json")
 
 
 def read_kept(path: Path) -> list[Evaluation]:

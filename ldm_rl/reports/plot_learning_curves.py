@@ -29,11 +29,11 @@ import argparse
 import csv
 import json
 import math
-import re
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ldm_rl.reports import kept_file
 from ldm_rl.run.outputs import atomic_path
 
 # panel order and names of the paper's tasks (env ids of conf/env/*.yaml)
@@ -58,7 +58,7 @@ PAPER_END = {
     "ldm_rl/BinPacking-v0": {"ldm": 0.58, "fcdqn": 0.62, "dynaq": 0.11, "rs": 0.02},
 }
 # a finished run kept in a results folder: its curve; the final metrics beside it name what it is
-RESULT_CURVE = re.compile(r"curves_[a-z_]+?_(?:ldm|fcdqn|rs|dynaq)_seed\d+(?:_(?P<tag>[A-Za-z0-9.]+))?_curve\.csv")
+RESULT_CURVE = kept_file("curve.csv")
 
 
 @dataclass
