@@ -407,6 +407,8 @@ class AgentConfig:
     q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")
     autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="ldm: autocast of the update's forward passes")
     return_lower_bound: bool = spec(False, doc="raise the targets to the return the episode collected")
+    greedy_ema_decay: Optional[float] = spec(None, gt=0, lt=1, doc="EMA decay of the weights the greedy policy "
+                                             "plays (null = the online weights)")
     bootstrap_cache: int = spec(0, ge=0, doc="ldm: transitions whose bootstrap is kept until the next target copy "
                                 "(0 = off)")
     value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns"),

@@ -78,7 +78,7 @@ def evaluate(cfg: DictConfig) -> dict:
     env = make_env_from_config(env_cfg)
     recorded: list = []
     on_episode = (lambda index, rollout: recorded.append(rollout) if index < keep else None) if keep else None
-    result = evaluate_policy(env, agent.policy, int(cfg.episodes), seed=held_out_scenes(cfg.seed), progress=bool(cfg.progress),
+    result = evaluate_policy(env, agent.greedy_policy, int(cfg.episodes), seed=held_out_scenes(cfg.seed), progress=bool(cfg.progress),
                              on_episode=on_episode)
     summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name, **result.as_dict()}
@@ -99,7 +99,7 @@ def world_model(agent):
     """The agent's dynamics model (its planner's, else its LDM loss'), or None (FC-DQN has none)."""
     from ldm_rl.world_model import DynamicsModel
 
-    for owner in (agent.policy, getattr(agent, "dynamics_loss", None)):
+    for owner in (agent.greedy_policy, getattr(agent, "dynamics_loss", None)):
         model = getattr(owner, "dynamics", None)
         if isinstance(model, DynamicsModel):
             return model
@@ -114,7 +114,7 @@ def render_episodes(rollouts: list, agent, cfg: DictConfig, out_dir, *, max_heig
     from ldm_rl.plots import plot_decision, plot_episodes_gif
     from ldm_rl.run.progress import progress_bar
 
-    dynamics, q_network = world_model(agent), getattr(agent.policy, "q_network", None)
+    dynamics, q_network = world_model(agent), getattr(agent.greedy_policy, "q_network", None)
     steps = [row for index, rollout in enumerate(rollouts)
              for row in episode_steps(rollout, episode=index, dynamics=dynamics, q_network=q_network)]
     written: dict = {}

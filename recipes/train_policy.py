@@ -180,7 +180,7 @@ def train(cfg: DictConfig) -> dict:
     best = {"success_rate": -1.0}  # the best in-training evaluation so far (schedule.keep_best)
 
     def evaluate(episodes: int, on_episode=None) -> dict:
-        result = evaluate_policy(eval_env, agent.policy, episodes, seed=evaluation_scenes(cfg.seed), progress=bool(s.progress),
+        result = evaluate_policy(eval_env, agent.greedy_policy, episodes, seed=evaluation_scenes(cfg.seed), progress=bool(s.progress),
                                  on_episode=on_episode)
         scores = {("eval_episodes" if key == "episodes" else key): value for key, value in result.as_dict().items()}
         row = {"updates": agent.updates, **counters, "wall_s": time.perf_counter() - start, **scores}
@@ -313,7 +313,7 @@ def train(cfg: DictConfig) -> dict:
     if s.keep_best and (out_dir / BEST_NAME).exists():
         # the selected weights on scenes the selection never saw (evaluate.py's seed), not on the curve's
         agent.load_policy_state_dict(load_checkpoint(out_dir / BEST_NAME, map_location=device).state["agent"])
-        result = evaluate_policy(eval_env, agent.policy, int(s.final_eval_episodes), seed=held_out_scenes(cfg.seed),
+        result = evaluate_policy(eval_env, agent.greedy_policy, int(s.final_eval_episodes), seed=held_out_scenes(cfg.seed),
                                  progress=bool(s.progress))
         summary["best"] = {"selected_at": {k: best[k] for k in ("updates", "episodes", "env_steps", "wall_s", "success_rate")},
                            **{("eval_episodes" if k == "episodes" else k): v for k, v in result.as_dict().items()}}

@@ -13,6 +13,7 @@ from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+SMOKE = ("experiment=smoke", "agent.return_lower_bound=true", "agent.greedy_ema_decay=0.9")
 
 
 def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:
@@ -23,8 +24,9 @@ def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("train_policy")
-    # with the return bound on (the stacking_lite choice), so the replay's return column runs end to end
-    proc = run("train_policy.py", "experiment=smoke", "agent.return_lower_bound=true", f"hydra.run.dir={out}", cwd=out)
+    # with the return bound on (the stacking_lite choice), so the replay's return column runs end to end, and the
+    # greedy policy's averaged weights, so the checkpoints, the resume and evaluate.py carry them
+    proc = run("train_policy.py", *SMOKE, f"hydra.run.dir={out}", cwd=out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, proc
 
@@ -47,6 +49,9 @@ def test_smoke_run_writes_curve_checkpoint_and_metrics(smoke_run):
     first_best = rows[rates.index(max(rates))]
     assert final["best"]["selected_at"]["updates"] == int(first_best["updates"])
     assert final["best"]["eval_episodes"] == 2 and (out / "best_policy.pt").exists()
+    from ldm_rl.run.checkpoint import load_checkpoint
+
+    assert "averaged_planner.n_averaged" in load_checkpoint(out / "best_policy.pt").state["agent"]
 
 
 @pytest.mark.slow
@@ -122,8 +127,8 @@ def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path)
 
     out, _ = smoke_run
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "train_policy.py"), "experiment=smoke",
-                             "agent.return_lower_bound=true", f"hydra.run.dir={run_dir}"], env=ENV, cwd=tmp_path, stdout=subprocess.DEVNULL,
+    proc = subprocess.Popen([sys.executable, str(ROOT / "recipes" / "train_policy.py"), *SMOKE,
+                             f"hydra.run.dir={run_dir}"], env=ENV, cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     deadline = time.time() + 600
     while not (run_dir / "checkpoint.pt").exists() and proc.poll() is None and time.time() < deadline:

@@ -107,14 +107,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
     )
     dynamics_loss = _dynamics_loss(cfg["loss"], dynamics)
-    return LDMAgent(
-        planner, loss, dynamics_loss,
-        lr=dict(agent_cfg["lr"]), weight_decay=dict(agent_cfg.get("weight_decay") or {}),
-        lr_decay=float(agent_cfg["lr_decay"]), lr_decay_every=int(agent_cfg["lr_decay_every"]),
-        target_update_interval=int(agent_cfg["target_update_interval"]),
-        q_grad_clip=agent_cfg.get("q_grad_clip"),
-        autocast=agent_cfg.get("autocast"),
-    )
+    return LDMAgent(planner, loss, dynamics_loss, q_grad_clip=agent_cfg.get("q_grad_clip"),
+                    autocast=agent_cfg.get("autocast"), **_optimisation(agent_cfg))
 
 
 def _required(agent_cfg: Mapping[str, Any], name: str, *keys: str) -> list:
@@ -155,7 +149,8 @@ def _model_and_value(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float)
 def _optimisation(agent_cfg: dict) -> dict:
     return {"lr": dict(agent_cfg["lr"]), "weight_decay": dict(agent_cfg.get("weight_decay") or {}),
             "lr_decay": float(agent_cfg["lr_decay"]), "lr_decay_every": int(agent_cfg["lr_decay_every"]),
-            "target_update_interval": int(agent_cfg["target_update_interval"])}
+            "target_update_interval": int(agent_cfg["target_update_interval"]),
+            "greedy_ema_decay": agent_cfg.get("greedy_ema_decay")}
 
 
 def build_fcdqn_agent(cfg: Mapping[str, Any], max_height: float):

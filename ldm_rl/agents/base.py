@@ -13,6 +13,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torchrl.objectives import LossModule
 
 from ldm_rl.objectives.target_sync import TargetSync
@@ -43,6 +44,12 @@ class Agent(nn.Module):
     @property
     def policy(self) -> TensorDictModuleBase:
         raise NotImplementedError
+
+    @property
+    def greedy_policy(self) -> TensorDictModuleBase:
+        """The policy evaluations play (greedily, under ``set_exploration_type(DETERMINISTIC)``); the
+        exploring ``policy`` unless the agent keeps averaged weights for it."""
+        return self.policy
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One gradient step on a flat batch of transitions; writes ``td_error`` [B] into ``batch``
@@ -113,7 +120,11 @@ class TargetNetworkAgent(Agent):
     following the update count, and the target updater's counter in :meth:`training_state`. A subclass
     builds its losses in ``update`` / ``pretrain_update`` and hands their sum to :meth:`_step`.
 
-    ``networks``: name -> module of every network trained here (the optimisers' order)."""
+    ``networks``: name -> module of every network trained here (the optimisers' order).
+    ``greedy_ema_decay``: when set (in (0, 1)), :attr:`greedy_policy` is a copy of the planner whose weights and
+    BatchNorm statistics are an exponential moving average of the online ones over the updates
+    (``torch.optim.swa_utils.AveragedModel``; its first update copies); training, exploration and the targets
+    are unchanged. None: the greedy policy plays the online weights."""
 
     def __init__(
         self,
@@ -127,6 +138,7 @@ class TargetNetworkAgent(Agent):
         lr_decay_every: int = 2000,
         target_update_interval: int = 100,
         q_grad_clip: float | None = None,
+        greedy_ema_decay: float | None = None,
     ) -> None:
         super().__init__()
         if target_update_interval < 1 or lr_decay_every < 1 or not 0 < lr_decay <= 1:
@@ -142,10 +154,28 @@ class TargetNetworkAgent(Agent):
             self.lr_schedulers[name] = torch.optim.lr_scheduler.StepLR(self.optimizers[name], lr_decay_every, lr_decay)
         self.q_grad_clip = q_grad_clip
         self.target_updater = TargetSync(loss, interval=target_update_interval)
+        self.averaged_planner = None
+        if greedy_ema_decay is not None:
+            if isinstance(greedy_ema_decay, bool) or not isinstance(greedy_ema_decay, (int, float)) \
+                    or not 0 < greedy_ema_decay < 1:
+                raise ValueError(f"greedy_ema_decay must be a number in (0, 1) or None, got {greedy_ema_decay!r}")
+            self.averaged_planner = AveragedModel(planner, multi_avg_fn=get_ema_multi_avg_fn(float(greedy_ema_decay)),
+                                                  use_buffers=True)
+            self.averaged_planner.requires_grad_(False)
 
     @property
     def policy(self) -> StatePolicy:
         return self.planner
+
+    @property
+    def greedy_policy(self) -> StatePolicy:
+        """The planner over the averaged weights once an update has been averaged (else the online planner),
+        at the online planner's schedule step."""
+        averaged = self.averaged_planner
+        if averaged is None or int(averaged.n_averaged) == 0:
+            return self.planner
+        averaged.module.set_step(self.planner.step)
+        return averaged.module
 
     def _train_mode(self) -> None:
         for module in self.trained.values():
@@ -167,6 +197,8 @@ class TargetNetworkAgent(Agent):
                 self.lr_schedulers[name].step()
         if count:
             self.target_updater.step()
+            if self.averaged_planner is not None:
+                self.averaged_planner.update_parameters(self.planner)
             self.updates += 1
             self.planner.set_step(self.updates)
 

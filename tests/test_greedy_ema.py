@@ -1,0 +1,66 @@
+"""agent.greedy_ema_decay: the greedy policy plays an exponential moving average of the online weights and
+BatchNorm statistics; training itself is unchanged."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from test_baselines import batch, make_agent, states
+
+AGENT_NAMES = ("ldm", "fcdqn", "rs", "dynaq")
+
+
+def _planner_state(module) -> dict[str, torch.Tensor]:
+    """Float parameters and buffers of a planner, by name."""
+    return {k: v.detach().clone() for k, v in module.state_dict().items() if v.is_floating_point()}
+
+
+@pytest.mark.parametrize("name", AGENT_NAMES)
+def test_the_average_leaves_training_unchanged_and_follows_the_ema_recursion(name):
+    decay = 0.8
+    plain, averaged = make_agent(name, seed=3), make_agent(name, f"agent.greedy_ema_decay={decay}", seed=3)
+    assert averaged.greedy_policy is averaged.policy  # nothing averaged yet: the online planner plays
+    expected = None
+    for seed in range(3):
+        for agent in (plain, averaged):  # the same draws for both (RS's target candidates are random)
+            torch.manual_seed(seed)
+            agent.update(batch(4, seed))
+        online = _planner_state(averaged.policy)
+        # the first update copies, later ones lerp by 1 - decay (weights and BatchNorm statistics alike)
+        expected = online if expected is None else {k: decay * expected[k] + (1 - decay) * online[k] for k in online}
+        assert averaged.greedy_policy is not averaged.policy
+        got = _planner_state(averaged.greedy_policy)
+        assert got.keys() == expected.keys()
+        for key in expected:
+            torch.testing.assert_close(got[key], expected[key], rtol=1e-5, atol=1e-7, msg=key)
+    running = [k for k in expected if k.endswith("running_mean")]
+    assert running or name in ("fcdqn", "dynaq")  # the LDM / V BatchNorm statistics too (a Q-map policy has none)
+    # the online networks trained exactly as without the average
+    plain_state, averaged_state = plain.state_dict(), averaged.state_dict()
+    for key, value in plain_state.items():
+        assert torch.equal(value, averaged_state[key]), key
+    # and the two greedy policies now decide differently from each other only through the weights
+    assert any(not torch.equal(expected[k], _planner_state(averaged.policy)[k]) for k in expected)
+
+
+def test_the_averaged_greedy_policy_survives_a_policy_state_round_trip():
+    agent = make_agent("ldm", "agent.greedy_ema_decay=0.5", seed=1)
+    for seed in range(2):
+        agent.update(batch(4, seed))
+    state = agent.policy_state_dict()
+    assert any(key.startswith("averaged_planner.module.") for key in state) and "averaged_planner.n_averaged" in state
+    copy = make_agent("ldm", "agent.greedy_ema_decay=0.5", seed=9)
+    copy.load_policy_state_dict(state)
+    probe = states(2, seed=4)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        a = agent.greedy_policy(probe.clone())
+        b = copy.greedy_policy(probe.clone())
+    assert torch.equal(a["action"], b["action"]) and torch.equal(a["candidate_values"], b["candidate_values"])
+
+
+@pytest.mark.parametrize("decay", ["0", "1", "1.5"])
+def test_a_decay_outside_the_open_unit_interval_is_refused(decay):
+    with pytest.raises(ValueError, match=r"greedy_ema_decay"):
+        make_agent("ldm", f"agent.greedy_ema_decay={decay}")
