@@ -591,6 +591,7 @@ class PlannerOverrides:
     """``evaluate.yaml``'s ``planner``: keys set over the checkpoint's planner (null = the checkpoint's)."""
 
     name: Optional[str] = spec(None, choices=(None, "diverse", "tree"), doc="the planner")
+    num_candidates: Optional[int] = spec(None, ge=1, doc="Q's proposals scored by V (1 = Q's argmax alone)")
     uncertainty_penalty: Optional[float] = spec(None, ge=0.0, doc="λ of V − λ·H")
     depth: Optional[int] = spec(None, ge=1, doc="tree: primitives looked ahead")
     branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")

@@ -40,6 +40,18 @@ def test_deterministic_picks_the_best_scored_candidate_and_repeats(nets):
     assert first["action_value"].shape == (4, 8, 128, 128) and first["state_value"].shape == (4, 1)
 
 
+def test_one_candidate_greedy_is_the_argmax_of_the_q_map(nets):
+    """num_candidates=1 (evaluate.py's planner.num_candidates=1): Q alone decides, V only scores its choice."""
+    from ldm_rl.geometry import flat_to_action
+
+    planner = make_planner(nets, num_candidates=1)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = planner(batch())
+    q_map = out["action_value"]  # [4, R, H, W]
+    expected = flat_to_action(q_map.reshape(4, -1).argmax(-1), 128, 128)
+    assert torch.equal(out["action"], expected) and out["candidate_actions"].shape == (4, 1, 3)
+
+
 def test_candidate_values_are_v_of_the_predicted_next_states(nets):
     q, dynamics, value = nets
     planner = make_planner(nets)

@@ -330,9 +330,11 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
-        "planner.uncertainty_penalty=0.0", "failed_pick_memory=0", f"hydra.run.dir={tmp_path / 'eval'}")
+        "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "failed_pick_memory=0",
+        f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
-    assert result["planner"] == {"name": "diverse", "uncertainty_penalty": 0.0} and result["episodes"] == 1
+    assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0}
+    assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0
 
 
