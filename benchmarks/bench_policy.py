@@ -97,7 +97,7 @@ def timed(fn, repeats: int) -> tuple[float, float, float]:
     return first, min(times), statistics.median(times)
 
 
-PHASES = ("act", "env", "replay", "ldm loss", "targets", "q/v losses", "backward", "optimiser")
+PHASES = ("act", "env", "replay", "ldm loss", "targets", "q/v losses", "backward", "optimiser", "averaging")
 
 
 def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0) -> dict[str, float]:
@@ -161,6 +161,8 @@ def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0)
     timed_method(agent.dynamics_loss, "forward", "ldm loss")
     for opt in agent.optimizers.values():
         timed_method(opt, "step", "optimiser")
+    if agent.averaged_planner is not None:  # agent.greedy_ema_decay: the greedy policy's weight average
+        timed_method(agent.averaged_planner, "update_parameters", "averaging")
     backward = torch.Tensor.backward
 
     def timed_backward(tensor, *args, **kwargs):

@@ -142,6 +142,8 @@ def group(cls: type) -> Any:
 
 # objects each task accepts (the envs raise the same for other counts: tests/test_config.py checks both agree)
 OBJECT_COUNTS = {"ldm_rl/HouseBuilding-v0": (3, 3), "ldm_rl/BottleArrangement-v0": (1, 6)}
+# pixels per side of the heightmap and of each rotation's Q map (ldm_rl.geometry.HEIGHTMAP_SIZE; tested equal)
+HEIGHTMAP_PIXELS = 128
 
 
 # ------------------------------------------------------------------------------------ the schema

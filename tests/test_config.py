@@ -203,6 +203,7 @@ BAD_COMMANDS = [
     ("train_dynamics.py", ["dynamics.iterations=abc", "--cfg", "job"],
      "error: dynamics.iterations=abc: Value 'abc' of type 'str' could not be converted to Integer"),
     ("train_dynamics.py", ["dynamics.lr=-1"], "error: dynamics.lr=-1.0 is out of range: must be in (0, 1] (Adam learning rate)"),
+    ("train_policy.py", ["agent.greedy_ema_decay=1"], "error: agent.greedy_ema_decay=1.0 is out of range: must be in (0, 1)"),
     ("train_dynamics.py", ["env.num_objects=0"], "error: env.num_objects=0 is out of range: must be >= 1 (objects in the scene)"),
     ("train_dynamics.py", ["dynamics.iterations=-1"], "error: dynamics.iterations=-1 is out of range: must be >= 1 (training iterations)"),
     ("generate_demos.py", ["demos.num_episodes=3"],
@@ -265,6 +266,21 @@ def test_evaluate_refuses_a_dynamics_checkpoint_in_one_line(tmp_path):
     assert done.returncode == 2 and list(work.iterdir()) == [], done.stderr
     assert done.stderr.strip() == (f"error: checkpoint={dynamics} holds a dynamics checkpoint: this recipe reads an agent's "
                                    "(a checkpoint.pt of recipes/train_policy.py)")
+
+
+def test_evaluate_refuses_more_candidates_than_the_checkpoints_q_map_in_one_line(tmp_path):
+    from ldm_rl.geometry import HEIGHTMAP_SIZE
+    from ldm_rl.run.checkpoint import save_checkpoint
+
+    assert config_schema.HEIGHTMAP_PIXELS == HEIGHTMAP_SIZE  # the pre-flight's light copy of the constant
+    agent = save_checkpoint(tmp_path / "run" / "checkpoint.pt", {"agent": {}},
+                            meta={"kind": "agent", "config": {"model": {"num_rotations": 4}}})
+    work = tmp_path / "work"
+    work.mkdir()
+    done = run_recipe(ROOT / "recipes" / "evaluate.py", f"checkpoint={agent}", "planner.num_candidates=65537", cwd=work)
+    assert done.returncode == 2 and list(work.iterdir()) == [], done.stderr
+    assert done.stderr.strip() == ("error: planner.num_candidates=65537 is more than the checkpoint's Q map holds: at most "
+                                   "65536 (4 rotations x 128x128 pixels)")
 
 
 def test_the_preflight_object_counts_are_the_envs_own():

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import SCHEMAS, ConfigError, EvaluateConfig, _omegaconf_line, config_differences, validate_config
+from ldm_rl.config_schema import HEIGHTMAP_PIXELS, SCHEMAS, ConfigError, EvaluateConfig, _omegaconf_line, config_differences, validate_config
 from ldm_rl.extras import MissingExtraError, require_equivariant_q, require_logger_backend
 
 __all__ = ["check_command_line", "machine_problems"]
@@ -48,13 +48,29 @@ def machine_problems(cfg: DictConfig, *, checkpoint_kind: str | None = None) -> 
     checkpoint = OmegaConf.select(cfg, "checkpoint")
     if checkpoint_kind is not None and checkpoint is not None:
         try:
-            kind = read_checkpoint_meta(checkpoint).get("kind")
+            meta = read_checkpoint_meta(checkpoint)
         except (CheckpointError, OSError) as err:
             return found + [f"checkpoint={checkpoint}: {err}"]
+        kind = meta.get("kind")
         if kind != checkpoint_kind:
             found.append(f"checkpoint={checkpoint} holds a {kind or 'kindless'} checkpoint: this recipe reads an "
                          f"{checkpoint_kind}'s (a checkpoint.pt of recipes/train_policy.py)")
+        else:
+            found += _planner_problems(cfg, meta.get("config") or {})
     return found
+
+
+def _planner_problems(cfg: DictConfig, trained: dict) -> list[str]:
+    """``evaluate.py``'s ``planner.num_candidates`` against the checkpoint's Q map (rotations x pixels)."""
+    num = OmegaConf.select(cfg, "planner.num_candidates")
+    rotations = (trained.get("model") or {}).get("num_rotations") or (trained.get("env") or {}).get("num_rotations")
+    if num is None or rotations is None:
+        return []
+    entries = int(rotations) * HEIGHTMAP_PIXELS**2
+    if int(num) > entries:
+        return [f"planner.num_candidates={num} is more than the checkpoint's Q map holds: at most {entries} "
+                f"({rotations} rotations x {HEIGHTMAP_PIXELS}x{HEIGHTMAP_PIXELS} pixels)"]
+    return []
 
 
 def _compile_problem(device: str) -> str | None:
