@@ -290,6 +290,18 @@ def test_the_schemas_null_tree_keys_do_not_reach_the_one_step_planner():
     assert type(build_agent(cfg, 0.25).planner) is LookaheadPlanner
 
 
+def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults():
+    """recipes/evaluate.py planner.name=tree on a checkpoint trained with planner=diverse: the stored config holds
+    the tree's keys as null, which must become TreePlanner's defaults and the agent's gamma, not an error."""
+    from ldm_rl.agents import build_agent
+
+    _, cfg = _composed("agent.gamma=0.8")
+    cfg["planner"].update(name="tree", depth=None, branching=None, gamma=None, terminal_reward=None)
+    planner = build_agent(cfg, 0.25).planner
+    assert type(planner) is TreePlanner
+    assert (planner.depth, planner.branching, planner.gamma, planner.terminal_reward) == (2, 3, 0.8, 0.1)
+
+
 @pytest.mark.parametrize("overrides, message", [
     (("planner.depth=2",), r"planner.depth=2 is read by planner=tree only \(got planner=diverse\)"),
     (("planner=tree", "planner.branching=11"), r"planner.branching=11 is out of range: must be <= planner.num_candidates"),

@@ -47,12 +47,14 @@ def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_netw
     name = kwargs.pop("name", "diverse")
     if name not in PLANNERS:
         raise ValueError(f"planner.name must be one of {sorted(PLANNERS)}, got {name!r}")
-    if name == "tree":
-        if kwargs.get("gamma") is None:
-            kwargs["gamma"] = gamma
-    else:  # the schema gives every planner the tree's keys (null); the others do not take them
-        from ldm_rl.planning.tree_planner import TREE_KEYS
+    from ldm_rl.planning.tree_planner import TREE_KEYS
 
+    # the schema gives every planner the tree's keys, null unless planner=tree set them: a null key takes the
+    # tree's default (a one-step run's weights planned with planner.name=tree), and the others never see them
+    if name == "tree":
+        kwargs = {key: value for key, value in kwargs.items() if not (key in TREE_KEYS and value is None)}
+        kwargs.setdefault("gamma", gamma)
+    else:
         kwargs = {key: value for key, value in kwargs.items() if key not in TREE_KEYS}
     return PLANNERS[name]()(q_network, dynamics, value_network, **kwargs)
 
