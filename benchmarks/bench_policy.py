@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import logging
 import statistics
 import time
+import warnings
 
 import torch
 from tensordict import TensorDict
@@ -277,6 +279,9 @@ def main() -> None:
     parser.add_argument("--autocast", nargs="+", default=["none"], choices=["none", "bf16"],
                         help="planner.autocast / agent.autocast settings to time (bf16: Q and LDM under bf16 autocast)")
     args = parser.parse_args()
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO line (a buffer's storage initialised) is noise here
+    # the phase timers wrap each optimiser's step, which torch's LR scheduler reports as an override
+    warnings.filterwarnings("ignore", message="Seems like `optimizer.step\\(\\)` has been overridden", category=UserWarning)
     if args.training_step:
         training_step_table(args.levers, args.steps, args.warmup)
         return
