@@ -407,6 +407,8 @@ class AgentConfig:
     target_range: Optional[List[float]] = None
     double_value: bool = False
     q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")
+    q_log_floor: Optional[float] = spec(None, gt=0, lt=1, doc="Q regresses log(max(target, this)); null = the "
+                                        "target itself")
     autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="ldm: autocast of the update's forward passes")
     return_lower_bound: bool = spec(False, doc="raise the targets to the return the episode collected")
     greedy_ema_decay: Optional[float] = spec(None, gt=0, lt=1, doc="EMA decay of the weights the greedy policy "
@@ -442,6 +444,8 @@ class AgentConfig:
                 found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
         if node.name == "rs" and node.get("q_architecture", "fcn") != "fcn":
             found.append(f"{prefix}q_architecture={node.q_architecture} is set but agent=rs builds no Q network")
+        if node.name == "rs" and node.get("q_log_floor") is not None:
+            found.append(f"{prefix}q_log_floor={_show(node.q_log_floor)} is set but agent=rs builds no Q network")
         if node.name != "ldm" and node.target_uncertainty_penalty:
             found.append(f"{prefix}target_uncertainty_penalty={_show(node.target_uncertainty_penalty)} is set but "
                          f"only agent=ldm uses it (agent.name={node.name}); set it to 0")

@@ -395,7 +395,8 @@ def test_smoke_run_end_to_end(name, tmp_path):
 @pytest.mark.slow
 def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_path):
     """experiment=smoke env=bin_packing: the expert episodes that seed the replay end terminated with a
-    reward in (0, 1] (the pile reward), the recipe counts exactly those as successes, and a run ends."""
+    reward in (0, 1] (the pile reward), the recipe counts exactly those as successes, and a run ends (Q on the
+    log scale)."""
     from ldm_rl.evaluation import episode_succeeded
 
     sys.path.insert(0, str(ROOT / "recipes"))
@@ -416,7 +417,8 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     failed[-1]["next", "reward"].zero_()
     assert not episode_succeeded(failed)  # terminated at 0 reward (an invalid scene) is no success
 
-    command = [sys.executable, str(RECIPE), "experiment=smoke", "env=bin_packing", "agent=fcdqn",
+    # Q on the log scale (agent.q_log_floor), the option meant for this task's small action gaps
+    command = [sys.executable, str(RECIPE), "experiment=smoke", "env=bin_packing", "agent=fcdqn", "agent.q_log_floor=0.01",
                "schedule.total_episodes=1", "schedule.final_eval_episodes=1", "env.max_steps=3",
                f"hydra.run.dir={tmp_path}"]
     proc = subprocess.run(command, capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=600)

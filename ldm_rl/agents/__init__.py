@@ -107,6 +107,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         bootstrap_cache=int(agent_cfg.get("bootstrap_cache") or 0),
         value_augmentation=agent_cfg.get("value_augmentation"),
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
+        q_log_floor=agent_cfg.get("q_log_floor"),
     )
     dynamics_loss = _dynamics_loss(cfg["loss"], dynamics)
     return LDMAgent(planner, loss, dynamics_loss, q_grad_clip=agent_cfg.get("q_grad_clip"),
@@ -165,7 +166,7 @@ def build_fcdqn_agent(cfg: Mapping[str, Any], max_height: float):
     agent_cfg = _plain(cfg["agent"])
     q_network = _q_network(cfg, agent_cfg, max_height)
     policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
-    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]),
+    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]), q_log_floor=agent_cfg.get("q_log_floor"),
                           return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)))
     return FCDQNAgent(policy, loss, q_grad_clip=agent_cfg.get("q_grad_clip"), **_optimisation(agent_cfg))
 
@@ -206,7 +207,7 @@ def build_dynaq_agent(cfg: Mapping[str, Any], max_height: float):
     q_network = _q_network(cfg, agent_cfg, max_height)
     _, dynamics_loss, value_network = _model_and_value(cfg, agent_cfg, max_height)
     policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
-    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]),
+    loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]), q_log_floor=agent_cfg.get("q_log_floor"),
                           return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)))
     return DynaQAgent(policy, loss, dynamics_loss, value_network, imagined_ratio=float(ratio),
                       terminal_reward=float(terminal),

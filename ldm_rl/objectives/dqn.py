@@ -15,6 +15,7 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from torch import nn
 
 from ldm_rl import keys
+from ldm_rl.objectives.q_scale import QScale
 from ldm_rl.objectives.transition_loss import TransitionLoss
 from ldm_rl.torch_utils import eval_mode
 
@@ -29,10 +30,12 @@ class SpatialDQNLoss(TransitionLoss):
         gamma: discount in [0, 1].
         return_lower_bound: raise ``y`` to the batch's ``return_to_go`` where it is higher
             (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
+        q_log_floor: None (Q regresses ``y``) or ε in (0, 1): Q regresses ``log(max(y, ε))`` and ``max Q⁻`` is
+            read back as ``exp`` (:class:`~ldm_rl.objectives.q_scale.QScale`; ``y`` itself is unchanged).
 
     The target network is ``target_q_network_params`` (TorchRL ``convert_to_functional``), synced by a
     target updater (:class:`~ldm_rl.objectives.TargetSync`); targets run in eval mode without gradients,
-    terminal rows skip the target pass. Writes ``td_error`` ``[B]`` = ``|Q(s, a) − y|`` into the input. Losses are Huber,
+    terminal rows skip the target pass. Writes ``td_error`` ``[B]`` = ``|Q(s, a) − y|`` (on Q's scale) into the input. Losses are Huber,
     weighted by ``priority_weight`` when present.
     """
 
@@ -41,8 +44,10 @@ class SpatialDQNLoss(TransitionLoss):
     target_q_network_params: TensorDictParams
     out_keys = ["loss_q", "q_target", keys.CHOSEN_ACTION_VALUE, "td_error"]
 
-    def __init__(self, q_network: nn.Module, *, gamma: float = 0.95, return_lower_bound: bool = False) -> None:
+    def __init__(self, q_network: nn.Module, *, gamma: float = 0.95, return_lower_bound: bool = False,
+                 q_log_floor: float | None = None) -> None:
         super().__init__()
+        self.q_scale = QScale(q_log_floor)
         self.return_lower_bound = bool(return_lower_bound)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
@@ -62,7 +67,7 @@ class SpatialDQNLoss(TransitionLoss):
             holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1, 1).bool().index_select(0, rows)
             with self.target_q_network_params.to_module(self.q_network, preserve_module_state=False), \
                     eval_mode(self.q_network):
-                q_next[rows] = self.q_network(*state, holding).flatten(1).amax(1, keepdim=True)
+                q_next[rows] = self.q_scale.decode(self.q_network(*state, holding).flatten(1).amax(1, keepdim=True))
         return self.lower_bounded(reward + self.gamma * q_next, tensordict)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
@@ -73,13 +78,14 @@ class SpatialDQNLoss(TransitionLoss):
         state = [tensordict.get(key) for key in (k.heightmap, k.in_hand)]
         holding = tensordict.get(k.holding).reshape(-1, 1).bool()
         q_pred = self.q_network.action_values(*state, holding, tensordict.get(k.action)).reshape(-1, 1)
-        td_error = (q_pred.detach() - target).abs().reshape(-1)
+        fitted = self.q_scale.encode(target)
+        td_error = (q_pred.detach() - fitted).abs().reshape(-1)
         tensordict.set(k.priority, td_error)
         return TensorDict(
             {
-                "loss_q": (F.smooth_l1_loss(q_pred, target, reduction="none") * weight).mean(),
+                "loss_q": (F.smooth_l1_loss(q_pred, fitted, reduction="none") * weight).mean(),
                 "q_target": target.mean(),
-                keys.CHOSEN_ACTION_VALUE: q_pred.detach().mean(),
+                keys.CHOSEN_ACTION_VALUE: self.q_scale.decode(q_pred.detach()).mean(),
                 "td_error": td_error.mean(),
             },
             batch_size=[],

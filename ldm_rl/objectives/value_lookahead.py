@@ -38,6 +38,7 @@ from torch import nn
 
 from ldm_rl import geometry, keys
 from ldm_rl.objectives.bootstrap_cache import BootstrapCache
+from ldm_rl.objectives.q_scale import QScale
 from ldm_rl.objectives.reward_head import predicted_next_state
 from ldm_rl.objectives.transition_loss import TransitionKeys, TransitionLoss
 from ldm_rl.planning.lookahead import lookahead
@@ -72,6 +73,8 @@ class LookaheadLoss(TransitionLoss):
         target_uncertainty_penalty: λ ≥ 0: the target's max over ``Ā_N(s')`` scores each proposal
             ``V⁻(f⁻(s', a')) − λ·H⁻(s', a')``, ``H⁻`` the target LDM's mean pixel entropy (nats; with
             ``double_value`` the online choice is penalised alike). 0 = the paper; not in the paper.
+        q_log_floor: None (the paper: Q regresses ``y_Q``) or ε in (0, 1): Q regresses ``log(max(y_Q, ε))``
+            (:class:`~ldm_rl.objectives.q_scale.QScale`; the targets themselves are unchanged). Not in the paper.
         double_value: choose the target candidate with the online V, score it with the target V.
         q_target: ``"max"`` (the paper: ``r + γ max Q⁻(s')``) or ``"lookahead"`` (``y_Q = y_V``).
         return_lower_bound: raise both targets to the batch's ``return_to_go`` where it is higher
@@ -124,8 +127,10 @@ class LookaheadLoss(TransitionLoss):
         bootstrap_cache: int = 0,
         value_augmentation: str | None = None,
         target_uncertainty_penalty: float = 0.0,
+        q_log_floor: float | None = None,
     ) -> None:
         super().__init__()
+        self.q_scale = QScale(q_log_floor)
         if isinstance(target_uncertainty_penalty, bool) or not isinstance(target_uncertainty_penalty, (int, float)) \
                 or not target_uncertainty_penalty >= 0:
             raise ValueError(f"target_uncertainty_penalty must be a number >= 0 (V units per nat), "
@@ -193,7 +198,7 @@ class LookaheadLoss(TransitionLoss):
             index = tensordict.get(k.index, None)
             boot = self._bootstrap(None if index is None else index.reshape(-1).index_select(0, rows),
                                    heightmap, in_hand, holding)
-            q_next[rows] = boot["q_max"]
+            q_next[rows] = self.q_scale.decode(boot["q_max"])
             scores = boot["target_values"]
             if self.double_value:  # (target V, online V) of each predicted state: [b, N, 2]
                 online = self._online_values(boot)
@@ -307,7 +312,7 @@ class LookaheadLoss(TransitionLoss):
         tensordict.set(k.priority, td_error)
         return TensorDict(
             {
-                "loss_q": huber(q_pred, q_target),
+                "loss_q": huber(q_pred, self.q_scale.encode(q_target)),
                 "loss_value": loss_value,
                 "loss_reward": loss_reward,
                 "q_target": q_target.mean(),
