@@ -46,23 +46,38 @@ PACKING_TASK = "ldm_rl/BinPacking-v0"
 CURVE_FIELDS = ("updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length")
 
 
-def packing_report(eval_env, returns: list[float], *, seed: int, progress: bool) -> dict:
-    """Bin packing's report for the final evaluation's ``returns``, with the scripted expert's on the same scenes
-    (the same evaluation seed): packed fraction, mean pile top (m), mean return under ours and the authors' reward."""
+def packing_report(eval_env, returns: list[float], blocks_in_bin: list[int], *, seed: int, progress: bool) -> dict:
+    """Bin packing's report for the final evaluation's ``returns`` and ``blocks_in_bin`` (per episode), with the
+    scripted expert's on the same scenes (the same evaluation seed): packed fraction, mean pile top (m), mean
+    return under ours and the authors' reward, mean blocks in the bin at the end."""
     from ldm_rl.envs import expert_policy
     from ldm_rl.envs.tasks.bin_packing import packing_scores
     from ldm_rl.evaluation import evaluate_policy
 
     expert_returns: list[float] = []
+    expert_blocks: list[int] = []
     evaluate_policy(eval_env, expert_policy(eval_env), len(returns), seed=seed, progress=progress,
-                    on_episode=lambda i, episode: expert_returns.append(float(episode["next", "reward"].sum())))
-    return {**packing_scores(returns), "expert": packing_scores(expert_returns)}
+                    on_episode=episode_record(eval_env, expert_returns, expert_blocks))
+    return {**packing_scores(returns, blocks_in_bin), "expert": packing_scores(expert_returns, expert_blocks)}
+
+
+def episode_record(eval_env, returns: list[float], blocks_in_bin: list[int] | None = None):
+    """An ``evaluate_policy`` callback appending each episode's return and, for bin packing, the blocks left in
+    the bin when it ended (read from the env before its next reset)."""
+    from ldm_rl.envs.torchrl_env import unwrap
+
+    def record(i, episode) -> None:
+        returns.append(float(episode["next", "reward"].sum()))
+        if blocks_in_bin is not None:
+            blocks_in_bin.append(int(unwrap(eval_env).blocks_in_bin()))
+    return record
 
 
 def _packing_line(scores: dict) -> str:
     top = "-" if scores["mean_pile_top"] is None else f"{100 * scores['mean_pile_top']:.1f} cm"
     return (f"packed {100 * scores['packed']:.0f}%, mean pile top {top}, mean return {scores['mean_return']:.3f} "
-            f"(the authors' reward: {scores['mean_return_authors']:.2f})")
+            f"(the authors' reward: {scores['mean_return_authors']:.2f}), "
+            f"{scores['mean_blocks_in_bin']:.2f} blocks in the bin at the end")
 
 
 def expert_episodes(cfg: DictConfig) -> list:
@@ -301,13 +316,16 @@ def train(cfg: DictConfig) -> dict:
                 break
     bar.close()
     shutdown_collector(collector)
+    packing = cfg.env.id == PACKING_TASK
     final_returns: list[float] = []  # per episode: bin packing's report reads the pile top from the reward
-    final = evaluate(int(s.final_eval_episodes), lambda i, episode: final_returns.append(float(episode["next", "reward"].sum())))
+    final_blocks: list[int] = []
+    final = evaluate(int(s.final_eval_episodes), episode_record(eval_env, final_returns, final_blocks if packing else None))
     summary = {"agent": agent.name, "task": cfg.env.id, "num_objects": int(cfg.env.num_objects), "seed": int(cfg.seed),
                "preset": str(cfg.agent.preset or cfg.model.preset), **{k: final[k] for k in CURVE_FIELDS},
                "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}
-    if cfg.env.id == PACKING_TASK:
-        summary["packing"] = packing_report(eval_env, final_returns, seed=evaluation_scenes(cfg.seed), progress=bool(s.progress))
+    if packing:
+        summary["packing"] = packing_report(eval_env, final_returns, final_blocks, seed=evaluation_scenes(cfg.seed),
+                                            progress=bool(s.progress))
         log.info(f"bin packing, final weights: {_packing_line(summary['packing'])}; the scripted expert on the same "
                  f"scenes: {_packing_line(summary['packing']['expert'])}")
     if s.keep_best and (out_dir / BEST_NAME).exists():

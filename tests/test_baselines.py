@@ -429,4 +429,7 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     packing = final["packing"]  # the agent's and the scripted expert's packing report on the same scene
     assert packing["episodes"] == packing["expert"]["episodes"] == 1
     assert packing["packed"] == final["success_rate"] and 0.0 <= packing["expert"]["packed"] <= 1.0
+    assert 0 <= packing["mean_blocks_in_bin"] <= 8 and 0 <= packing["expert"]["mean_blocks_in_bin"] <= 8
+    # 3 primitives cannot pack 8 blocks; the expert's first place puts its first block in the bin
+    assert packing["expert"]["mean_blocks_in_bin"] == 1 and packing["expert"]["packed"] == 0
     assert "the scripted expert on the same scenes" in proc.stdout + proc.stderr

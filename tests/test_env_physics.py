@@ -195,9 +195,13 @@ def test_packing_scores_read_the_pile_top_back_from_the_reward():
     assert scores["mean_return"] == pytest.approx((0.375 + 0.25) / 4)
     assert scores["mean_return_authors"] == pytest.approx((2.0 - 2.0) / 4, abs=1e-9)  # 100·(0.1 − top): +2, −2
     assert packing_scores([0.0, 0.0])["mean_pile_top"] is None
+    assert "mean_blocks_in_bin" not in scores
+    assert packing_scores([pile_reward(0.08), 0.0], [8, 3])["mean_blocks_in_bin"] == 5.5
     for bad in ([], [1.5]):
         with pytest.raises(ValueError):
             packing_scores(bad)
+    with pytest.raises(ValueError, match="one count per episode"):
+        packing_scores([0.0, 0.0], [1])
 
 
 def test_bin_packing_expert_successes_earn_a_positive_reward_that_falls_with_the_pile():
@@ -209,11 +213,13 @@ def test_bin_packing_expert_successes_earn_a_positive_reward_that_falls_with_the
         results = []  # (pile top, terminal reward); seeds 0 and 1 pile higher than the bin (> 0.10 m)
         for seed in (0, 1, 2, 3):
             episode = run_expert_episode(env, seed=seed)
-            assert episode[-1].terminated and env._is_success()
+            assert episode[-1].terminated and env._is_success() and env.blocks_in_bin() == 8
             assert all(t.reward == 0.0 for t in episode[:-1])
             assert 0.0 < episode[-1].reward <= 1.0
             assert episode[-1].reward == pytest.approx(pile_reward(env.pile_top()))
             results.append((env.pile_top(), episode[-1].reward))
+        env.reset(seed=0)
+        assert env.blocks_in_bin() == 0  # every block spawns outside the bin
     finally:
         env.close()
     results.sort()

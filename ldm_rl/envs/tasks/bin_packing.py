@@ -49,23 +49,30 @@ def pile_top_from_reward(reward: float) -> float:
     return MIN_PILE_TOP / float(reward)
 
 
-def packing_scores(returns: list[float]) -> dict:
+def packing_scores(returns: list[float], blocks_in_bin: list[int] | None = None) -> dict:
     """Episode returns (our reward: a success's ``pile_reward``, else 0) -> the bin-packing report.
 
     ``packed``: fraction of episodes with all blocks in the bin; ``mean_pile_top`` (m) over the packed ones
     (None when none); ``mean_return`` under our reward and ``mean_return_authors`` under the authors'
     terminal reward ``100·(0.1 m − pile top)`` (0 for an episode that never packed; the paper plots it).
+    ``blocks_in_bin`` (optional, one count per episode, :meth:`BinPackingEnv.blocks_in_bin` at its end) adds
+    ``mean_blocks_in_bin``: the progress of the episodes that did not pack them all.
     """
     if not returns:
         raise ValueError("returns must hold at least one episode's return")
+    if blocks_in_bin is not None and len(blocks_in_bin) != len(returns):
+        raise ValueError(f"blocks_in_bin must hold one count per episode ({len(returns)}), got {len(blocks_in_bin)}")
     tops = [pile_top_from_reward(r) for r in returns if r > 0]
-    return {
+    scores = {
         "episodes": len(returns),
         "packed": len(tops) / len(returns),
         "mean_pile_top": sum(tops) / len(tops) if tops else None,
         "mean_return": sum(returns) / len(returns),
         "mean_return_authors": sum(100 * (0.1 - top) for top in tops) / len(returns),
     }
+    if blocks_in_bin is not None:
+        scores["mean_blocks_in_bin"] = sum(blocks_in_bin) / len(blocks_in_bin)
+    return scores
 
 
 class BinPackingEnv(PickPlaceEnv):
@@ -98,7 +105,11 @@ class BinPackingEnv(PickPlaceEnv):
             spawn(self.sim, BIN_BLOCKS[k], p[0], p[1], rng.uniform(0, 2 * math.pi))
 
     def _is_success(self) -> bool:
-        return all(self.bin.contains(self.sim.pose(o.body)[0]) for o in self.sim.objects)
+        return self.blocks_in_bin() == len(self.sim.objects)
+
+    def blocks_in_bin(self) -> int:
+        """Blocks whose centre lies inside the bin (seen from above), the held one included."""
+        return sum(self.bin.contains(self.sim.pose(o.body)[0]) for o in self.sim.objects)
 
     def pile_top(self) -> float:
         """Highest point of any block, m."""
