@@ -69,3 +69,11 @@ def test_dqn_loss_reads_the_target_map_back_from_the_log_scale():
     assert torch.isfinite(out["loss_q"]) and batch["td_error"].shape == (4,)
     with pytest.raises(ValueError, match="q_log_floor"):
         SpatialDQNLoss(q, q_log_floor=0.0)
+
+
+@pytest.mark.parametrize("name", ["ldm", "fcdqn", "dynaq"])
+def test_agent_q_log_floor_reaches_the_agents_q_loss(name):
+    from test_baselines import make_agent
+
+    assert make_agent(name).loss.q_scale.log_floor is None  # the paper's linear Q by default
+    assert make_agent(name, "agent.q_log_floor=0.01").loss.q_scale.log_floor == 0.01

@@ -13,8 +13,6 @@ step. Returns below ``floor`` (failures, 0) all map to ``log(floor)``.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 __all__ = ["QScale"]
@@ -35,10 +33,6 @@ class QScale:
                              f"the log scale tells apart), got {log_floor!r}")
         self.log_floor = None if log_floor is None else float(log_floor)
 
-    @property
-    def is_log(self) -> bool:
-        return self.log_floor is not None
-
     def encode(self, returns: torch.Tensor) -> torch.Tensor:
         """Q's regression target for ``returns`` (same shape)."""
         return returns if self.log_floor is None else returns.clamp_min(self.log_floor).log()
@@ -46,6 +40,3 @@ class QScale:
     def decode(self, q: torch.Tensor) -> torch.Tensor:
         """The return a Q value stands for (same shape); the inverse of :meth:`encode` above the floor."""
         return q if self.log_floor is None else q.exp()
-
-    def __repr__(self) -> str:
-        return "QScale(linear)" if self.log_floor is None else f"QScale(log, floor={self.log_floor:g} = e^{math.log(self.log_floor):.2f})"
