@@ -11,7 +11,8 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any, Callable
 
-__all__ = ["EvaluationResult", "wilson_interval", "evaluate_policy", "episode_succeeded", "episode_steps"]
+__all__ = ["EvaluationResult", "wilson_interval", "evaluate_policy", "episode_succeeded", "episode_steps",
+           "is_bin_packing", "episode_record", "packing_report", "packing_line"]
 
 
 @dataclass(frozen=True)
@@ -79,6 +80,51 @@ def evaluate_policy(env, policy, episodes: int, *, seed: int | None = None, max_
     low, high = wilson_interval(successes, episodes)
     return EvaluationResult(episodes, successes, successes / episodes, low, high,
                             sum(returns) / episodes, sum(lengths) / episodes)
+
+
+def is_bin_packing(env) -> bool:
+    """Whether ``env`` (a TorchRL env from :func:`~ldm_rl.envs.make_env`) plays bin packing, whose report adds
+    the packed fraction, the pile top and the blocks left in the bin (:func:`packing_report`)."""
+    from ldm_rl.envs.tasks.bin_packing import BinPackingEnv
+    from ldm_rl.envs.torchrl_env import unwrap
+
+    return isinstance(unwrap(env), BinPackingEnv)
+
+
+def episode_record(env, returns: list[float], blocks_in_bin: list[int] | None = None) -> Callable[[int, Any], None]:
+    """An ``on_episode`` callback for :func:`evaluate_policy` that appends each episode's return to ``returns``
+    and, given ``blocks_in_bin``, the blocks in the bin when the episode ended (bin packing; read from ``env``
+    before its next reset)."""
+    from ldm_rl.envs.torchrl_env import unwrap
+
+    def record(index: int, rollout) -> None:
+        returns.append(float(rollout["next", "reward"].sum()))
+        if blocks_in_bin is not None:
+            blocks_in_bin.append(int(unwrap(env).blocks_in_bin()))
+    return record
+
+
+def packing_report(env, returns: list[float], blocks_in_bin: list[int], *, seed: int | None, progress: bool = False) -> dict:
+    """Bin packing's report for the ``returns`` and ``blocks_in_bin`` (one per episode, :func:`episode_record`) of
+    an evaluation with ``seed``, and under ``"expert"`` the scripted expert's on the same scenes (the same seed,
+    as many episodes): packed fraction, mean pile top (m), mean return under ours and the authors' reward, mean
+    blocks in the bin at the end (:func:`~ldm_rl.envs.tasks.bin_packing.packing_scores`)."""
+    from ldm_rl.envs import expert_policy
+    from ldm_rl.envs.tasks.bin_packing import packing_scores
+
+    expert_returns: list[float] = []
+    expert_blocks: list[int] = []
+    evaluate_policy(env, expert_policy(env), len(returns), seed=seed, progress=progress,
+                    on_episode=episode_record(env, expert_returns, expert_blocks))
+    return {**packing_scores(returns, blocks_in_bin), "expert": packing_scores(expert_returns, expert_blocks)}
+
+
+def packing_line(scores: dict) -> str:
+    """One line of a :func:`packing_report` (the agent's part, or its ``"expert"``), for a log."""
+    top = "-" if scores["mean_pile_top"] is None else f"{100 * scores['mean_pile_top']:.1f} cm"
+    return (f"packed {100 * scores['packed']:.0f}%, mean pile top {top}, mean return {scores['mean_return']:.3f} "
+            f"(the authors' reward: {scores['mean_return_authors']:.2f}), "
+            f"{scores['mean_blocks_in_bin']:.2f} blocks in the bin at the end")
 
 
 def episode_steps(rollout, *, episode: int = 0, dynamics=None, q_network=None) -> list[dict]:

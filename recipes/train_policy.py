@@ -42,42 +42,7 @@ TRANSITION_KEYS = ("heightmap", "in_hand", "holding", "action",
                    ("next", "done"), ("next", "terminated"), ("next", "truncated"))
 log = logging.getLogger("train_policy")
 BEST_NAME = "best_policy.pt"
-PACKING_TASK = "ldm_rl/BinPacking-v0"
 CURVE_FIELDS = ("updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length")
-
-
-def packing_report(eval_env, returns: list[float], blocks_in_bin: list[int], *, seed: int, progress: bool) -> dict:
-    """Bin packing's report for the final evaluation's ``returns`` and ``blocks_in_bin`` (per episode), with the
-    scripted expert's on the same scenes (the same evaluation seed): packed fraction, mean pile top (m), mean
-    return under ours and the authors' reward, mean blocks in the bin at the end."""
-    from ldm_rl.envs import expert_policy
-    from ldm_rl.envs.tasks.bin_packing import packing_scores
-    from ldm_rl.evaluation import evaluate_policy
-
-    expert_returns: list[float] = []
-    expert_blocks: list[int] = []
-    evaluate_policy(eval_env, expert_policy(eval_env), len(returns), seed=seed, progress=progress,
-                    on_episode=episode_record(eval_env, expert_returns, expert_blocks))
-    return {**packing_scores(returns, blocks_in_bin), "expert": packing_scores(expert_returns, expert_blocks)}
-
-
-def episode_record(eval_env, returns: list[float], blocks_in_bin: list[int] | None = None):
-    """An ``evaluate_policy`` callback appending each episode's return and, for bin packing, the blocks left in
-    the bin when it ended (read from the env before its next reset)."""
-    from ldm_rl.envs.torchrl_env import unwrap
-
-    def record(i, episode) -> None:
-        returns.append(float(episode["next", "reward"].sum()))
-        if blocks_in_bin is not None:
-            blocks_in_bin.append(int(unwrap(eval_env).blocks_in_bin()))
-    return record
-
-
-def _packing_line(scores: dict) -> str:
-    top = "-" if scores["mean_pile_top"] is None else f"{100 * scores['mean_pile_top']:.1f} cm"
-    return (f"packed {100 * scores['packed']:.0f}%, mean pile top {top}, mean return {scores['mean_return']:.3f} "
-            f"(the authors' reward: {scores['mean_return_authors']:.2f}), "
-            f"{scores['mean_blocks_in_bin']:.2f} blocks in the bin at the end")
 
 
 def expert_episodes(cfg: DictConfig) -> list:
@@ -149,7 +114,7 @@ def train(cfg: DictConfig) -> dict:
     from ldm_rl.data.replay import FrameReplay
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.collectors import EpisodeAssembler, TaskEnvFactory, collected_steps, make_collector, shutdown_collector
-    from ldm_rl.evaluation import evaluate_policy
+    from ldm_rl.evaluation import episode_record, evaluate_policy, is_bin_packing, packing_line, packing_report
     from ldm_rl.models.compile import compile_inference
     from ldm_rl.seeds import evaluation_scenes, held_out_scenes, training_scenes
     from ldm_rl.run.progress import progress_bar
@@ -316,7 +281,7 @@ def train(cfg: DictConfig) -> dict:
                 break
     bar.close()
     shutdown_collector(collector)
-    packing = cfg.env.id == PACKING_TASK
+    packing = is_bin_packing(eval_env)
     final_returns: list[float] = []  # per episode: bin packing's report reads the pile top from the reward
     final_blocks: list[int] = []
     final = evaluate(int(s.final_eval_episodes), episode_record(eval_env, final_returns, final_blocks if packing else None))
@@ -326,8 +291,8 @@ def train(cfg: DictConfig) -> dict:
     if packing:
         summary["packing"] = packing_report(eval_env, final_returns, final_blocks, seed=evaluation_scenes(cfg.seed),
                                             progress=bool(s.progress))
-        log.info(f"bin packing, final weights: {_packing_line(summary['packing'])}; the scripted expert on the same "
-                 f"scenes: {_packing_line(summary['packing']['expert'])}")
+        log.info(f"bin packing, final weights: {packing_line(summary['packing'])}; the scripted expert on the same "
+                 f"scenes: {packing_line(summary['packing']['expert'])}")
     if s.keep_best and (out_dir / BEST_NAME).exists():
         # the selected weights on scenes the selection never saw (evaluate.py's seed), not on the curve's
         agent.load_policy_state_dict(load_checkpoint(out_dir / BEST_NAME, map_location=device).state["agent"])

@@ -433,3 +433,13 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     # 3 primitives cannot pack 8 blocks; the expert's first place puts its first block in the bin
     assert packing["expert"]["mean_blocks_in_bin"] == 1 and packing["expert"]["packed"] == 0
     assert "the scripted expert on the same scenes" in proc.stdout + proc.stderr
+
+    # recipes/evaluate.py gives the same report for a bin-packing checkpoint (agent and expert, same scenes)
+    evaluate = [sys.executable, str(ROOT / "recipes" / "evaluate.py"), f"checkpoint={tmp_path / 'checkpoint.pt'}",
+                "episodes=2", "max_steps=3", f"hydra.run.dir={tmp_path / 'evaluation'}"]
+    proc = subprocess.run(evaluate, capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    packing = json.loads((tmp_path / "evaluation" / "evaluation.json").read_text())["packing"]
+    assert packing["episodes"] == packing["expert"]["episodes"] == 2
+    assert packing["expert"]["mean_blocks_in_bin"] == 1 and packing["expert"]["packed"] == 0  # one place in 3 steps
+    assert 0 <= packing["mean_blocks_in_bin"] <= 8 and packing["packed"] == 0
