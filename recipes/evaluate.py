@@ -4,6 +4,7 @@
     python recipes/evaluate.py checkpoint=... num_objects=4          # a 3-block agent on 4 blocks (Table 2)
     python recipes/evaluate.py -m checkpoint=... num_objects=4,5
     python recipes/evaluate.py checkpoint=... planner.name=tree            # the same weights, 2 steps ahead
+    python recipes/evaluate.py checkpoint=... online_weights=true    # agent.greedy_ema_decay runs: not the average
 
 Rebuilds the agent from the configuration stored in the checkpoint, plays ``episodes`` episodes under
 ``ExplorationType.DETERMINISTIC`` and logs the success rate with a 95 % Wilson interval (bin packing adds
@@ -53,6 +54,7 @@ def evaluate(cfg: DictConfig) -> dict:
     """Rebuild, play, report."""
     from ldm_rl.agents import load_agent
     from ldm_rl.envs import make_env_from_config
+    from ldm_rl.run.checkpoint import CheckpointError
     from ldm_rl.evaluation import episode_record, evaluate_policy, is_bin_packing, packing_line, packing_report
     from ldm_rl.seeds import held_out_scenes
     from ldm_rl.run.outputs import atomic_write_text, hydra_output_dir, save_resolved_config
@@ -89,7 +91,13 @@ def evaluate(cfg: DictConfig) -> dict:
             recorded.append(rollout)
 
     scenes = held_out_scenes(cfg.seed)
-    result = evaluate_policy(env, agent.greedy_policy, int(cfg.episodes), seed=scenes, progress=bool(cfg.progress),
+    policy = agent.greedy_policy
+    if cfg.online_weights:
+        if getattr(agent, "averaged_planner", None) is None:
+            raise CheckpointError(f"online_weights=true needs a run trained with agent.greedy_ema_decay; {path} has no "
+                                  "averaged weights (its greedy policy already plays the online ones)")
+        policy = agent.policy  # the online planner; under DETERMINISTIC it plays greedily
+    result = evaluate_policy(env, policy, int(cfg.episodes), seed=scenes, progress=bool(cfg.progress),
                              on_episode=on_episode)
     summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name, **result.as_dict()}
@@ -101,6 +109,8 @@ def evaluate(cfg: DictConfig) -> dict:
         summary["planner"] = planner
     if cfg.failed_pick_memory is not None:
         summary["failed_pick_memory"] = int(cfg.failed_pick_memory)
+    if cfg.online_weights:
+        summary["online_weights"] = True
     if recorded:
         summary["pictures"] = render_episodes(recorded, agent, cfg, hydra_output_dir(), max_height=float(env_cfg["max_height"]),
                                               num_rotations=int(env_cfg["num_rotations"]),

@@ -63,6 +63,14 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     result = json.loads((tmp_path / "evaluation.json").read_text())
     assert result["num_objects"] == 4 and result["trained_on"] == 3 and result["episodes"] == 2
     assert result["ci_low"] <= result["success_rate"] <= result["ci_high"]
+    assert "online_weights" not in result  # the averaged weights, what the run's own evaluations played
+
+    # the same training played with its online weights (the run has agent.greedy_ema_decay)
+    online = tmp_path / "online"
+    proc = run("evaluate.py", f"checkpoint={out / 'checkpoint.pt'}", "episodes=1", "online_weights=true", "progress=false",
+               f"hydra.run.dir={online}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((online / "evaluation.json").read_text())["online_weights"] is True
 
 
 @pytest.mark.slow
