@@ -91,12 +91,10 @@ def evaluate(cfg: DictConfig) -> dict:
             recorded.append(rollout)
 
     scenes = held_out_scenes(cfg.seed)
-    policy = agent.greedy_policy
-    if cfg.online_weights:
-        if getattr(agent, "averaged_planner", None) is None:
-            raise CheckpointError(f"online_weights=true needs a run trained with agent.greedy_ema_decay; {path} has no "
-                                  "averaged weights (its greedy policy already plays the online ones)")
-        policy = agent.policy  # the online planner; under DETERMINISTIC it plays greedily
+    try:
+        policy = agent.evaluation_policy(online_weights=bool(cfg.online_weights))
+    except ValueError as err:
+        raise CheckpointError(f"online_weights=true {err}: {path}") from None
     result = evaluate_policy(env, policy, int(cfg.episodes), seed=scenes, progress=bool(cfg.progress),
                              on_episode=on_episode)
     summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],

@@ -64,3 +64,15 @@ def test_the_averaged_greedy_policy_survives_a_policy_state_round_trip():
 def test_a_decay_outside_the_open_unit_interval_is_refused(decay):
     with pytest.raises(ValueError, match=r"greedy_ema_decay"):
         make_agent("ldm", f"agent.greedy_ema_decay={decay}")
+
+
+@pytest.mark.parametrize("name", AGENT_NAMES)
+def test_evaluation_policy_plays_the_average_or_on_request_the_online_weights(name):
+    averaged = make_agent(name, "agent.greedy_ema_decay=0.5", seed=2)
+    averaged.update(batch(4, 0))
+    assert averaged.evaluation_policy() is averaged.greedy_policy is not averaged.policy
+    assert averaged.evaluation_policy(online_weights=True) is averaged.policy
+    plain = make_agent(name, seed=2)
+    assert plain.evaluation_policy() is plain.policy
+    with pytest.raises(ValueError, match=r"needs a run trained with agent.greedy_ema_decay"):
+        plain.evaluation_policy(online_weights=True)

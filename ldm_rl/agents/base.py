@@ -177,6 +177,17 @@ class TargetNetworkAgent(Agent):
         averaged.module.set_step(self.planner.step)
         return averaged.module
 
+    def evaluation_policy(self, online_weights: bool = False) -> StatePolicy:
+        """What an evaluation plays: :attr:`greedy_policy`, or with ``online_weights`` the online planner of an
+        agent built with ``greedy_ema_decay`` (the same training played the other way; greedy under
+        ``ExplorationType.DETERMINISTIC``). ValueError for ``online_weights`` without averaged weights."""
+        if not online_weights:
+            return self.greedy_policy
+        if self.averaged_planner is None:
+            raise ValueError("needs a run trained with agent.greedy_ema_decay; this agent has no averaged weights "
+                             "(its greedy policy already plays the online ones)")
+        return self.planner
+
     def _train_mode(self) -> None:
         for module in self.trained.values():
             module.train()
