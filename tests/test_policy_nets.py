@@ -219,6 +219,33 @@ def test_q_action_values_equal_the_maps_and_run_one_rotation_per_sample():
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in part.parameters())
 
 
+@pytest.mark.parametrize("radius, exact", [(QFCN.WINDOW_RADIUS, True), (QFCN.WINDOW_RADIUS - 1, False)])
+def test_q_action_values_window_is_the_whole_receptive_field_at_the_frame_border(radius, exact):
+    """action_values runs up_1 and the heads on a window around each action: its values and parameter
+    gradients equal the full maps' at the frame's corners and edges (where the window leaves the frame),
+    for pick and place rows; one pixel less of window is no longer exact."""
+    q, n = tiny_q(seed=3), 12
+    q.WINDOW_RADIUS = radius
+    scene, in_hand, _ = states(n, seed=11)
+    holding = torch.arange(n) % 2 == 1  # pick and place rows
+    pixels = torch.tensor([[0, 0], [0, 127], [127, 0], [127, 127], [1, 64], [126, 64], [64, 2], [64, 125],
+                           [3, 3], [124, 125], [64, 64], [40, 90]])
+    bins = torch.tensor([0, 4] * (n // 2))  # quarter turns: the rotated frame covers every pixel
+    action = torch.cat((pixels, bins.unsqueeze(1)), 1)
+    values = q.action_values(scene, in_hand, holding, action)
+    values.sum().backward()
+    window_grads = [p.grad.clone() for p in q.parameters()]
+    q.zero_grad()
+    maps = q(scene, in_hand, holding)
+    expected = maps[torch.arange(n), bins, pixels[:, 0], pixels[:, 1]]
+    expected.sum().backward()
+    close = torch.allclose(values, expected, rtol=1e-5, atol=1e-6)
+    assert close == exact
+    if exact:
+        for window_grad, p in zip(window_grads, q.parameters()):
+            torch.testing.assert_close(window_grad, p.grad, rtol=1e-4, atol=1e-7)
+
+
 def test_raw_and_replay_decoded_heights_give_identical_outputs():
     q, v = tiny_q(), tiny_v()
     scene, in_hand, holding = states(2, seed=6)

@@ -14,7 +14,10 @@ conv biases and linear layers):
 
 Parameters: 8,417,110 at ``width=1`` (the hand encoder, convs and MLP, is 6,969,892 of them), exactly the
 reference's. Differences from the reference's *execution* (not its weights): the hand kernel is computed
-once per sample, not once per rotation; only the head of each sample's primitive runs.
+once per sample, not once per rotation; only the head of each sample's primitive runs; and the training
+path :meth:`QFCN.action_values` runs the last up block and the head only on the 9 × 9 window around each
+action's pixel (its whole receptive field there), not on the 128² map, for the same values and gradients
+(the full-resolution layers were ≈ 40 % of a training pass's time at ``stacking_lite``'s width).
 
 Inputs are heights in metres, encoded as ``heights_to_classes(h) / (K − 1)`` (:func:`blocks.encode_heights`).
 
@@ -74,6 +77,26 @@ class _UpBlock(nn.Module):
     def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
         up = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
         return self.block(torch.cat((skip, up), dim=1))
+
+
+def _bilinear_window(
+    x: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, size: tuple[int, int], batch: torch.Tensor
+) -> torch.Tensor:
+    """``F.interpolate(x, size, mode="bilinear", align_corners=False)`` read only at the pixels
+    ``rows [n, a] × cols [n, b]`` (long, inside ``size``) of each sample: ``x`` [n, C, h, w] -> [n, a, b, C]."""
+
+    def taps(out: torch.Tensor, n_in: int, n_out: int):
+        src = ((out.to(x.dtype) + 0.5) * (n_in / n_out) - 0.5).clamp(min=0)
+        lo = src.floor().long().clamp(max=n_in - 1)
+        return lo, (lo + 1).clamp(max=n_in - 1), src - lo.to(x.dtype)
+
+    r0, r1, wr = taps(rows, x.shape[-2], size[0])
+    c0, c1, wc = taps(cols, x.shape[-1], size[1])
+    r0, r1, wr = r0.unsqueeze(2), r1.unsqueeze(2), wr[:, :, None, None]
+    c0, c1, wc = c0.unsqueeze(1), c1.unsqueeze(1), wc[:, None, :, None]
+    top = x[batch, :, r0, c0] * (1 - wc) + x[batch, :, r0, c1] * wc
+    bottom = x[batch, :, r1, c0] * (1 - wc) + x[batch, :, r1, c1] * wc
+    return top * (1 - wr) + bottom * wr
 
 
 def _map_head(channels: int, width: float) -> nn.Sequential:
@@ -174,6 +197,9 @@ class QFCN(CompiledInference, nn.Module):
     """
 
     CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
+    # px: one map pixel's receptive field in up_1's input (up_1's two 3×3 convs, the place path's hand-kernel
+    # conv, the head's 3×3); action_values runs up_1 and the heads only on this window around each action
+    WINDOW_RADIUS = 4
 
     def __init__(
         self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0,
@@ -255,6 +281,11 @@ class QFCN(CompiledInference, nn.Module):
         return self._inference(self._trunk_eager, x, dynamic_batch=x.device.type != "cpu")
 
     def _trunk_eager(self, x: torch.Tensor) -> torch.Tensor:
+        return self.up_1(*self._trunk_to_up_2(x))
+
+    def _trunk_to_up_2(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """[M, 1, H, W] encoded scenes -> (``up_2``'s output [M, C32, H/2, W/2], ``conv_1``'s [M, C16, H, W]):
+        the two inputs of ``up_1``, the last up block."""
         inp = self.conv_1(x)
         if x.device.type == "cpu":  # see the module docstring (channels_last)
             inp = inp.contiguous(memory_format=torch.channels_last)  # the later layers keep the format
@@ -262,7 +293,44 @@ class QFCN(CompiledInference, nn.Module):
         d2 = self.layer_2(d1)
         d3 = self.layer_3(d2)
         y = self.conv_2(self.layer_4(d3))
-        return self.up_1(self.up_2(self.up_3(self.up_4(y, d3), d2), d1), inp)
+        return self.up_2(self.up_3(self.up_4(y, d3), d2), d1), inp
+
+    def _window_values(
+        self, up: torch.Tensor, skip: torch.Tensor, hand: torch.Tensor, holding: torch.Tensor, centre: torch.Tensor
+    ) -> torch.Tensor:
+        """The map value at one pixel per sample, running ``up_1`` and the head only on the
+        ``(2·WINDOW_RADIUS + 1)²`` window around it (the pixel's whole receptive field from ``up_1``'s input).
+
+        Args: ``up`` [n, C32, H/2, W/2] and ``skip`` [n, C16, H, W] (:meth:`_trunk_to_up_2`), ``hand``
+        [n, 1, 24, 24] encoded, ``holding`` [n] bool, ``centre`` [n, 2] long (row, col) in the gripper frame.
+        Returns [n]: the value ``_maps`` shows there, up to float summation order. Window pixels outside the
+        frame are zeroed before every 3×3 conv, which is what the full map's zero padding does there.
+        """
+        n, _, h, w = skip.shape
+        r = self.WINDOW_RADIUS
+        offsets = torch.arange(-r, r + 1, device=skip.device)
+        rows, cols = centre[:, :1] + offsets, centre[:, 1:] + offsets  # [n, 2r + 1] full-resolution pixels
+        inside = (((rows >= 0) & (rows < h)).unsqueeze(2) & ((cols >= 0) & (cols < w)).unsqueeze(1)).unsqueeze(1)
+        mask = inside.to(skip.dtype)  # [n, 1, 2r + 1, 2r + 1]
+        batch = torch.arange(n, device=skip.device).view(n, 1, 1)
+        rows, cols = rows.clamp(0, h - 1), cols.clamp(0, w - 1)  # the mask zeroes what the clamp repeats
+        skip_window = skip[batch, :, rows.unsqueeze(2), cols.unsqueeze(1)]
+        up_window = _bilinear_window(up, rows, cols, (h, w), batch)
+        x = torch.cat((skip_window, up_window), dim=-1).permute(0, 3, 1, 2) * mask  # channels_last [n, C, 2r+1, 2r+1]
+        block = self.up_1.block
+        feat = block.act(block.conv2(block.act(block.conv1(x)) * mask) + block.shortcut(x)) * mask
+        place_rows = holding.nonzero().squeeze(1)
+        if place_rows.numel() == 0:
+            return self.pick_head(feat)[:, 0, r, r]
+        values = feat.new_empty(n)
+        pick_rows = (~holding).nonzero().squeeze(1)
+        if pick_rows.numel():
+            values = values.index_put((pick_rows,), self.pick_head(feat[pick_rows])[:, 0, r, r])
+        c, side = feat.shape[1], 2 * r + 1
+        kernels = self._hand_kernels(hand[place_rows]).reshape(-1, c, 3, 3)
+        y = F.conv2d(feat[place_rows].reshape(1, -1, side, side), kernels, padding=1, groups=place_rows.numel())
+        y = self.act(y.view(-1, c, side, side)) * mask[place_rows]
+        return values.index_put((place_rows,), self.place_head(y)[:, 0, r, r])
 
     def _hand_kernels(self, in_hand: torch.Tensor) -> torch.Tensor:
         """[n, 1, 24, 24] encoded hands -> [n, C, C, 3, 3] per-sample kernels."""
@@ -360,11 +428,14 @@ class QFCN(CompiledInference, nn.Module):
 
     def _action_chunk(self, x: torch.Tensor, hand: torch.Tensor, holding: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Encoded [n, 1, H, W], [n, 1, 24, 24], [n] bool, [n, 3] long -> [n] Q of the actions."""
-        n, size = x.shape[0], x.shape[-1]
+        size = x.shape[-1]
         bins = action[:, 2]
-        maps = self._maps(self._rotate_scene(x, bins), hand, holding)  # [n, 1, H, W], gripper frames
         pixel = self._map_index[bins, action[:, 0] * size + action[:, 1]]  # [n], 0 = outside the frame
-        return F.pad(maps.reshape(n, -1), (1, 0)).gather(1, pixel.unsqueeze(1)).squeeze(1)
+        frame_pixel = (pixel - 1).clamp(min=0)
+        centre = torch.stack((frame_pixel.div(size, rounding_mode="floor"), frame_pixel.remainder(size)), dim=1)
+        up, skip = self._trunk_to_up_2(self._rotate_scene(x, bins))
+        values = self._window_values(up, skip, hand, holding, centre)
+        return torch.where(pixel > 0, values, torch.zeros_like(values))
 
 
 def build_q_network(
