@@ -418,6 +418,8 @@ class AgentConfig:
     value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns"),
                                              doc="ldm: V fitted on next states turned by random quarter turns")
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
+    q_proposal_fit: int = spec(0, ge=0, doc="ldm: target proposals per next state Q is also fitted on, toward "
+                               "V⁻ of their prediction (0 = off)")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -446,6 +448,12 @@ class AgentConfig:
             found.append(f"{prefix}q_architecture={node.q_architecture} is set but agent=rs builds no Q network")
         if node.name == "rs" and node.get("q_log_floor") is not None:
             found.append(f"{prefix}q_log_floor={_show(node.q_log_floor)} is set but agent=rs builds no Q network")
+        if node.name != "ldm" and node.get("q_proposal_fit", 0):
+            found.append(f"{prefix}q_proposal_fit={node.q_proposal_fit} is set but only agent=ldm uses it "
+                         f"(agent.name={node.name}); set it to 0")
+        elif node.get("q_proposal_fit", 0) > node.num_target_candidates:
+            found.append(f"{prefix}q_proposal_fit={node.q_proposal_fit} exceeds {prefix}num_target_candidates="
+                         f"{node.num_target_candidates}: Q can be fitted only on proposals the target scored")
         if node.name != "ldm" and node.target_uncertainty_penalty:
             found.append(f"{prefix}target_uncertainty_penalty={_show(node.target_uncertainty_penalty)} is set but "
                          f"only agent=ldm uses it (agent.name={node.name}); set it to 0")

@@ -108,6 +108,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         value_augmentation=agent_cfg.get("value_augmentation"),
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
         q_log_floor=agent_cfg.get("q_log_floor"),
+        q_proposal_fit=int(agent_cfg.get("q_proposal_fit") or 0),
     )
     dynamics_loss = _dynamics_loss(cfg["loss"], dynamics)
     return LDMAgent(planner, loss, dynamics_loss, q_grad_clip=agent_cfg.get("q_grad_clip"),

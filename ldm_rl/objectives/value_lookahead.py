@@ -88,6 +88,12 @@ class LookaheadLoss(TransitionLoss):
             random yaws, physics and success blind to a turn about the vertical); Q and the LDM are
             equivariant to quarter turns by construction, the V CNN is not, and it is the one network fitted
             on whole scenes. The targets are computed on the states as stored (a turn leaves them unchanged).
+        q_proposal_fit: M in [0, N]: Q is also fitted, at each live next state ``s'``, on the first M of its
+            target proposals ``Ā_N(s')`` (the target Q map's best, then the next after inhibition), toward
+            ``V⁻(f⁻(s', a'))``, the score the target already computed for them (clamped to ``target_range``):
+            the model-based ``Q̂(s', a') = V(f(s', a'))`` of the paper, on actions Q itself ranks high, not only
+            on the action taken. A proposal Q rates high and V rates low (a pick that would come up empty) is
+            pushed down. Costs one Q training pass per pair; 0 = off (the paper). Not in the paper.
     """
 
     @dataclass
@@ -128,6 +134,7 @@ class LookaheadLoss(TransitionLoss):
         value_augmentation: str | None = None,
         target_uncertainty_penalty: float = 0.0,
         q_log_floor: float | None = None,
+        q_proposal_fit: int = 0,
     ) -> None:
         super().__init__()
         self.q_scale = QScale(q_log_floor)
@@ -150,6 +157,11 @@ class LookaheadLoss(TransitionLoss):
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
         if not isinstance(num_target_candidates, int) or num_target_candidates < 1:
             raise ValueError(f"num_target_candidates must be a positive int, got {num_target_candidates!r}")
+        if isinstance(q_proposal_fit, bool) or not isinstance(q_proposal_fit, int) \
+                or not 0 <= q_proposal_fit <= num_target_candidates:
+            raise ValueError(f"q_proposal_fit must be an int in [0, num_target_candidates={num_target_candidates}], "
+                             f"got {q_proposal_fit!r}")
+        self.q_proposal_fit = q_proposal_fit
         self.convert_to_functional(q_network, "q_network", create_target_params=True)
         self.convert_to_functional(value_network, "value_network", create_target_params=True)
         self.convert_to_functional(dynamics, "dynamics", create_target_params=True)
@@ -182,10 +194,17 @@ class LookaheadLoss(TransitionLoss):
         if self.bootstrap_cache is not None:
             self.bootstrap_cache.clear()
 
-    @torch.no_grad()
     def targets(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """``(y_Q, y_V)``, each ``[B, 1]`` float32, for a flat batch of transitions (target networks)."""
+        return self._targets(tensordict)[:2]
+
+    @torch.no_grad()
+    def _targets(self, tensordict: TensorDictBase):
+        """``(y_Q, y_V, fit)``: the targets and, with ``q_proposal_fit`` M > 0, ``fit = (rows [b], actions
+        [b, M, 3], values [b, M])``: the live rows, their next states' first M target proposals and those
+        proposals' clamped target scores (else None)."""
         k = self.tensor_keys
+        fit = None
         reward = tensordict.get(k.reward).reshape(-1, 1).float()
         live = ~tensordict.get(k.terminated).reshape(-1).bool()
         q_next = torch.zeros_like(reward)
@@ -207,6 +226,9 @@ class LookaheadLoss(TransitionLoss):
                 scores = torch.stack((scores, online), -1)
             if self.target_range is not None:  # a state's value is a return too: bootstrap from values in range
                 scores, q_next = scores.clamp(*self.target_range), q_next.clamp(*self.target_range)
+            if self.q_proposal_fit:
+                m = self.q_proposal_fit
+                fit = (rows, boot["target_actions"], (scores[..., 0] if self.double_value else scores)[:, :m])
             if self.double_value:
                 best = scores[..., 1].argmax(1, keepdim=True)
                 v_next[rows] = scores[..., 0].gather(1, best)
@@ -216,7 +238,7 @@ class LookaheadLoss(TransitionLoss):
         y_q = y_v.clone() if self.q_target == "lookahead" else self.lower_bounded(reward + self.gamma * q_next, tensordict)
         if self.target_range is not None:
             y_q, y_v = y_q.clamp(*self.target_range), y_v.clamp(*self.target_range)
-        return y_q, y_v
+        return y_q, y_v, fit
 
     def _bootstrap(self, index, heightmap, in_hand, holding) -> dict[str, torch.Tensor]:
         """What the target networks say about the next states ``[b]``, from the cache where it has them:
@@ -244,6 +266,7 @@ class LookaheadLoss(TransitionLoss):
 
     def _bootstrap_names(self) -> tuple[str, ...]:
         names = ("q_max", "target_values") + (("next_heightmap", "next_in_hand") if self.double_value else ())
+        names += ("target_actions",) if self.q_proposal_fit else ()
         return names + (("entropy",) if self.double_value and self.target_uncertainty_penalty else ())
 
     def _fresh_bootstrap(self, heightmap, in_hand, holding) -> dict[str, torch.Tensor]:
@@ -255,6 +278,8 @@ class LookaheadLoss(TransitionLoss):
                                chunk_size=self.chunk_size, with_states=self.double_value,
                                with_entropy=bool(self.target_uncertainty_penalty))
         out = {"q_max": q_map.flatten(1).amax(1, keepdim=True), "target_values": result.values.float()}
+        if self.q_proposal_fit:
+            out["target_actions"] = candidates[:, : self.q_proposal_fit]
         if self.target_uncertainty_penalty:
             out["target_values"] = out["target_values"] - self.target_uncertainty_penalty * result.entropy
             if self.double_value:  # the online choice among the same predictions is penalised alike
@@ -277,6 +302,19 @@ class LookaheadLoss(TransitionLoss):
                       for i in range(0, b * n, self.chunk_size)]
         return torch.cat(values).reshape(b, n)
 
+    def _proposal_fit_loss(self, tensordict, weight, rows, actions, values) -> torch.Tensor:
+        """Huber loss of ``Q(s', a')`` against ``values`` for the live rows' next states ``s'`` and their
+        proposals ``actions [b, M, 3]`` (each pair weighted by its row's importance weight; 0 without rows)."""
+        if rows.numel() == 0:
+            return weight.new_zeros(())
+        k, m = self.tensor_keys, actions.shape[1]
+        state = [tensordict.get((keys.NEXT, key)).index_select(0, rows).repeat_interleave(m, 0)
+                 for key in (k.heightmap, k.in_hand)]
+        holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1).bool().index_select(0, rows).repeat_interleave(m)
+        q_pred = self.q_network.action_values(*state, holding, actions.reshape(-1, 3)).reshape(-1, 1)
+        loss = F.smooth_l1_loss(q_pred, self.q_scale.encode(values.reshape(-1, 1)), reduction="none")
+        return (loss * weight.index_select(0, rows).repeat_interleave(m, 0)).mean()
+
     def _draw_turns(self, batch: int, device) -> torch.Tensor | None:
         """``[batch]`` quarter-turn counts for ``value_augmentation`` (torch's global RNG), or None when off."""
         return None if self.value_augmentation is None else torch.randint(4, (batch,), device=device)
@@ -284,7 +322,7 @@ class LookaheadLoss(TransitionLoss):
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         self.check_batch(tensordict)
         k = self.tensor_keys
-        q_target, v_target = self.targets(tensordict)
+        q_target, v_target, fit = self._targets(tensordict)
         weight = self.importance_weights(tensordict, q_target)
 
         def huber(pred, target):
@@ -310,9 +348,12 @@ class LookaheadLoss(TransitionLoss):
             loss_reward = loss_reward + huber(r_pred, reward)
         td_error = (v_real.detach() - v_target).abs().reshape(-1)
         tensordict.set(k.priority, td_error)
+        loss_q = huber(q_pred, self.q_scale.encode(q_target))
+        if fit is not None:
+            loss_q = loss_q + self._proposal_fit_loss(tensordict, weight, *fit)
         return TensorDict(
             {
-                "loss_q": huber(q_pred, self.q_scale.encode(q_target)),
+                "loss_q": loss_q,
                 "loss_value": loss_value,
                 "loss_reward": loss_reward,
                 "q_target": q_target.mean(),
