@@ -318,8 +318,8 @@ def test_option_misuse_is_one_clear_config_error(overrides, message):
 
 @pytest.mark.slow
 def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_planner(tmp_path):
-    """CI smoke: a tiny training run with the tree planner, both entropy penalties, the failed-pick memory and
-    2- or 3-block training scenes, then recipes/evaluate.py
+    """CI smoke: a tiny training run with the tree planner, both entropy penalties, the failed-pick memory,
+    2- or 3-block training scenes and Q fitted on its proposals, then recipes/evaluate.py
     planning its weights with planner overrides (written into evaluation.json)."""
     import json
     import os
@@ -338,7 +338,7 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     train = tmp_path / "train"
     run("train_policy.py", "experiment=smoke", "planner=tree", "planner.depth=2", "planner.branching=2",
         "planner.uncertainty_penalty=0.1", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
-        "env.train_object_counts=[2,3]", f"hydra.run.dir={train}")
+        "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1", f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
