@@ -796,16 +796,41 @@ def config_differences(run: Mapping[str, Any], given: Mapping[str, Any], ignore:
     With ``schema`` (the dataclass of ``given``), a key the run's config lacks is no difference when the
     command gives the schema's default: a key added after the run was written, whose default keeps the
     behaviour the run had (e.g. ``planner.name: diverse``)."""
-    out = []
+    return [f"{key}: the run has {_show(a)}, the command gives {_show(b)}"
+            for key, a, b in _differing_leaves(run, given, ignore, prefix, schema)]
+
+
+def resume_overrides(run: Mapping[str, Any], given: Mapping[str, Any], ignore: tuple[str, ...] = ("resume", "device"),
+                     schema: type | None = None) -> list[str]:
+    """The command-line overrides (``key=value``) that give the run's value for each leaf
+    :func:`config_differences` reports and the run has: what resumes a run after a preset's default changed."""
+    return [f"{key}={_override_value(a)}" for key, a, _ in _differing_leaves(run, given, ignore, "", schema)
+            if a != "<absent>"]
+
+
+def _differing_leaves(run, given, ignore, prefix, schema):
+    """``(dotted key, run's value, command's value)`` for each differing leaf (see :func:`config_differences`)."""
     hints = typing.get_type_hints(schema) if schema is not None else {}
     for key in sorted(set(run) | set(given)):
         if prefix + key in ignore:
             continue
         a, b = run.get(key, "<absent>"), given.get(key, "<absent>")
         if isinstance(a, Mapping) and isinstance(b, Mapping):
-            out += config_differences(a, b, ignore, f"{prefix}{key}.", _nested_schema(hints.get(key)))
+            yield from _differing_leaves(a, b, ignore, f"{prefix}{key}.", _nested_schema(hints.get(key)))
         elif key not in run and b == _schema_default(schema, key):
             continue
         elif a != b:
-            out.append(f"{prefix}{key}: the run has {_show(a)}, the command gives {_show(b)}")
-    return out
+            yield prefix + key, a, b
+
+
+def _override_value(value) -> str:
+    """A resolved config value as Hydra's override grammar reads it back."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_override_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{" + ",".join(f"{k}:{_override_value(v)}" for k, v in value.items()) + "}"
+    return str(value)

@@ -2,6 +2,7 @@
 (ldm_rl.config_schema) stops wrong types, out-of-range values and contradictions in one line, before any
 work and without an output folder."""
 
+import copy
 import importlib.util
 import os
 import re
@@ -387,6 +388,24 @@ def test_a_run_written_before_a_key_existed_resumes_when_the_key_is_at_its_defau
     moved = {**given, "device": "cuda" if given["device"] != "cuda" else "cpu"}  # the machine's to choose
     assert config_schema.config_differences(run, moved, schema=schema) == []
 
+
+
+def test_resume_overrides_give_back_the_runs_config_after_a_preset_default_changed():
+    """A run written before a preset changed a default (here: the curves presets' averaged greedy weights, the
+    proposal-fit key added since, a list and a string changed too) resumes with the overrides the refusal
+    names: composed with them, the command's config equals the run's."""
+    given = OmegaConf.to_container(make_cfg("experiment=curves_block_stacking", config_name="train_policy"), resolve=False)
+    run = copy.deepcopy(given)
+    run["agent"]["greedy_ema_decay"] = None
+    run["agent"]["target_range"] = [0.0, 0.5]
+    run["planner"]["proposal"] = "argmax"
+    del run["agent"]["q_proposal_fit"]  # added after the run was written, at a default that keeps its behaviour
+    schema = config_schema.TrainPolicyConfig
+    fix = config_schema.resume_overrides(run, given, schema=schema)
+    assert sorted(fix) == ["agent.greedy_ema_decay=null", "agent.target_range=[0.0,0.5]", "planner.proposal=argmax"]
+    again = OmegaConf.to_container(make_cfg("experiment=curves_block_stacking", *fix, config_name="train_policy"),
+                                   resolve=False)
+    assert config_schema.config_differences(run, again, schema=schema) == []
 
 def test_every_recipe_defaults_to_the_same_device():
     devices = {name: OmegaConf.load(CONF / f"{name}.yaml").get("device") for name in ("train_dynamics", "train_policy", "evaluate")}

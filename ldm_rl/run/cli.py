@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
-from ldm_rl.config_schema import HEIGHTMAP_PIXELS, SCHEMAS, ConfigError, EvaluateConfig, _omegaconf_line, config_differences, validate_config
+from ldm_rl.config_schema import HEIGHTMAP_PIXELS, SCHEMAS, ConfigError, EvaluateConfig, _omegaconf_line, config_differences, resume_overrides, validate_config
 from ldm_rl.extras import MissingExtraError, require_equivariant_q, require_logger_backend
 
 __all__ = ["check_command_line", "machine_problems"]
@@ -272,8 +272,10 @@ def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, s
             diffs = config_differences(meta.get("config", {}), given, schema=schema)
             if diffs:
                 shown = "; ".join(diffs[:6]) + ("; ..." if len(diffs) > 6 else "")
+                fix = resume_overrides(meta.get("config", {}), given, schema=schema)
+                hint = f"; to resume it as it ran, add: {' '.join(fix)}" if fix and len(fix) == len(diffs) else ""
                 _fail(f"resume=true: this command's config differs from the run's in {checkpoint}: {shown} (a resumed run "
-                      "keeps its config; start a new run to change it)")
+                      f"keeps its config; start a new run to change it){hint}")
         return argv
     finally:
         GlobalHydra.instance().clear()
