@@ -17,7 +17,7 @@ reference's. Differences from the reference's *execution* (not its weights): the
 once per sample, not once per rotation; only the head of each sample's primitive runs; and the training
 path :meth:`QFCN.action_values` runs the last up block and the head only on the 9 × 9 window around each
 action's pixel (its whole receptive field there), not on the 128² map, for the same values and gradients
-(the full-resolution layers were ≈ 40 % of a training pass's time at ``stacking_lite``'s width).
+(the windowed layers were ≈ 40 % of a training pass's profiled time at ``stacking_lite``'s width).
 
 Inputs are heights in metres, encoded as ``heights_to_classes(h) / (K − 1)`` (:func:`blocks.encode_heights`).
 
