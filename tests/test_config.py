@@ -390,6 +390,12 @@ def test_a_run_written_before_a_key_existed_resumes_when_the_key_is_at_its_defau
 
 
 
+@pytest.mark.parametrize("preset", ["curves_block_stacking", "curves_house_building", "curves_bottle_arrangement",
+                                    "curves_bin_packing", "table2_block_stacking"])
+def test_the_curves_presets_play_averaged_greedy_weights(preset):
+    assert make_cfg(f"experiment={preset}", config_name="train_policy").agent.greedy_ema_decay == 0.99
+
+
 def test_resume_overrides_give_back_the_runs_config_after_a_preset_default_changed():
     """A run written before a preset changed a default (here: the curves presets' averaged greedy weights, the
     proposal-fit key added since, a list and a string changed too) resumes with the overrides the refusal

@@ -160,7 +160,8 @@ def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path)
 @pytest.mark.slow
 def test_sigterm_saves_and_exits_with_one_line(tmp_path):
     """A wall-clock-bound run: progress in minutes of its budget, the first signal says what the run waits
-    for, the stop line names the budget, and the folder then refuses a fresh start naming the episode."""
+    for, the stop line names the budget, and the folder then refuses a fresh start naming the episode, and a
+    resume with another config naming the override that gives the run's back."""
     import signal
     import time
 
@@ -190,6 +191,12 @@ def test_sigterm_saves_and_exits_with_one_line(tmp_path):
     again = subprocess.run(command, env=ENV, cwd=tmp_path, capture_output=True, text=True)
     assert again.returncode == 2 and len(again.stderr.strip().splitlines()) == 1, again.stderr
     assert "already holds a run's checkpoint (episode " in again.stderr and " updates): continue it with resume=true" in again.stderr
+    # resuming with another config is refused in one line naming the override that gives the run's back
+    changed = subprocess.run([*command[:2], "resume=true", f"hydra.run.dir={run_dir}", "agent.greedy_ema_decay=0.5"],
+                             env=ENV, cwd=tmp_path, capture_output=True, text=True)
+    assert changed.returncode == 2 and len(changed.stderr.strip().splitlines()) == 1, changed.stderr
+    assert "agent.greedy_ema_decay: the run has null, the command gives 0.5" in changed.stderr
+    assert changed.stderr.strip().endswith("to resume it as it ran, add: agent.greedy_ema_decay=null"), changed.stderr
 
 
 @pytest.mark.parametrize("rate, pattern", [(1, [1, 1, 1, 1]), (2, [2, 2, 2, 2]), (0.5, [0, 1, 0, 1]),
