@@ -171,6 +171,32 @@ def test_tipped_roof_terminates_house_building():
         env.close()
 
 
+@pytest.mark.parametrize("spacing, standing", [(0.045, True), (0.07, True), (0.095, True), (0.14, True), (0.17, False)])
+def test_house_succeeds_whenever_the_roof_rests_on_both_cubes(spacing, standing):
+    """The anchor's check: cubes on the table, roof upright on both and touching both; the spacing is the
+    physics' to decide (a roof across cubes 9.5 cm apart stands; across a gap wider than the roof it falls)."""
+    from ldm_rl.envs.tasks.house_building import ROOF_REST_ON_CUBES
+
+    env = gym.make("ldm_rl/HouseBuilding-v0").unwrapped
+    try:
+        env.reset(seed=0)
+        mid, angle = np.array([0.45, 0.02]), 0.3
+        axis = np.array([math.cos(angle), math.sin(angle)])
+        for cube, side in zip(env.cubes, (-0.5, 0.5)):
+            x, y = mid + side * spacing * axis
+            pb.resetBasePositionAndOrientation(cube.body, [x, y, 0.02], pb.getQuaternionFromEuler([0, 0, angle]),
+                                              physicsClientId=env.sim.client)
+        across = pb.getQuaternionFromEuler([0, 0, angle - math.pi / 2])
+        pb.resetBasePositionAndOrientation(env.roof.body, [*mid, ROOF_REST_ON_CUBES + 0.003], across,
+                                          physicsClientId=env.sim.client)
+        env.sim.settle(400)
+        assert env._is_success() is standing
+        assert env._invalid_reason() == ""
+        assert env._cubes_arranged() is (0.055 < spacing < 0.09)  # the expert's own plan keeps its 5.5-9 cm
+    finally:
+        env.close()
+
+
 def test_bin_packing_pile_reward_is_inversely_proportional_to_the_pile_top():
     from ldm_rl.envs.tasks.bin_packing import MIN_PILE_TOP, pile_reward
 
