@@ -486,7 +486,8 @@ def _differences(a, b, prefix=""):
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
     ("curves_house_building", {"agent.lr.value"}),
     ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes"}),
-    ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes"}),
+    # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
+    ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
 ])
 def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, task_keys):
     """The comparison's presets share curves_block_stacking's settings; a preset changes only the env and the
@@ -498,3 +499,15 @@ def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, t
     if preset == "table2_block_stacking":
         assert cfg["env"]["train_object_counts"] == [2, 3] and cfg["env"]["num_objects"] == base["env"]["num_objects"] == 3
         assert {key for key in _differences(base, cfg)} == task_keys  # same env otherwise
+
+
+@pytest.mark.parametrize("agent, fit, floor", [("ldm", 3, 0.01), ("fcdqn", 0, 0.01), ("dynaq", 0, 0.01), ("rs", 0, None)])
+def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floor):
+    """conf/experiment_agent/<experiment>_<agent>.yaml: bin packing's Q scale for every agent with a Q network,
+    the proposal fit for the ldm agent only (each refused for the others), and the command line still wins."""
+    cfg = make_cfg("experiment=curves_bin_packing", f"agent={agent}", config_name="train_policy")
+    assert cfg.agent.get("q_proposal_fit") == fit and cfg.agent.get("q_log_floor") == floor
+    config_schema.validate_config(cfg, config_schema.TrainPolicyConfig)
+    mine = make_cfg("experiment=curves_bin_packing", f"agent={agent}", "agent.q_log_floor=null", config_name="train_policy")
+    assert mine.agent.get("q_log_floor") is None
+    assert make_cfg("experiment=curves_house_building", f"agent={agent}", config_name="train_policy").agent.get("q_log_floor") is None
