@@ -88,7 +88,8 @@ def test_each_recipe_has_its_own_primary_config_with_only_the_groups_it_reads():
         source = (ROOT / "recipes" / f"{stem}.py").read_text()
         assert re.search(r'config_name="(\w+)"', source).group(1) == stem
         defaults = OmegaConf.to_container(OmegaConf.load(CONF / f"{stem}.yaml"))["defaults"]
-        groups = {str(k).split()[-1] for d in defaults if isinstance(d, dict) for k in d} - {"schema", "experiment"}
+        groups = {str(k).split()[-1] for d in defaults if isinstance(d, dict) for k in d} - {"schema", "experiment",
+                                                                                               "experiment_agent"}
         unread = {g for g in groups if not re.search(rf"\bcfg\.{g}\b|cfg\[\"{g}\"\]", source)}
         if stem == "train_policy":  # hands cfg to ldm_rl.agents.build_agent, which reads model, loss, agent, planner
             unread -= {"model", "loss", "agent", "planner"}
@@ -127,3 +128,13 @@ def test_unknown_config_name_is_one_line_error():
     done = run_help("train_dynamics", "--config-name", "nope", "--help")
     assert done.returncode == 2
     assert done.stderr.strip().count("\n") == 0 and done.stderr.startswith("error: --config-name nope")
+
+
+def test_help_shows_a_presets_settings_for_the_chosen_agent():
+    """conf/experiment_agent/ is chosen by the preset and the agent, not listed as a group; --help with the two
+    shows that file's keys."""
+    text = run_help("train_policy", "--help", "experiment=curves_bin_packing", "agent=ldm").stdout
+    assert "experiment_agent:" not in text.split("Keys of")[0]
+    assert "conf/experiment_agent/curves_bin_packing_ldm.yaml" in text and "q_proposal_fit: 3" in text
+    other = run_help("train_policy", "--help", "experiment=curves_bin_packing", "agent=rs").stdout
+    assert "with agent=rs" not in other and "q_proposal_fit: 3" not in other  # rs has no such file

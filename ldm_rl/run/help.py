@@ -38,14 +38,15 @@ def _raw_help(primary: dict, key: str, stem: str) -> str:
 
 
 def _default_groups(primary: dict) -> list[tuple[str, str | None]]:
-    """``(group, default option)`` of the primary config's defaults list, without ``schema`` and ``_self_``."""
+    """``(group, default option)`` of the primary config's defaults list, without ``schema``, ``_self_`` and the
+    groups chosen by interpolation (``experiment_agent: ${experiment}_${agent}``: not the user's to choose)."""
     found = []
     for entry in primary.get("defaults") or []:
         if not isinstance(entry, dict):
             continue
         for key, value in entry.items():
             group = str(key).split()[-1].lstrip("/")  # "optional schema", "override /env"
-            if group != "schema" and "/" not in group:
+            if group != "schema" and "/" not in group and "${" not in str(value):
                 found.append((group, None if value is None else str(value)))
     return found
 
@@ -208,6 +209,11 @@ def recipe_help(recipe_file: str, *, config_name: str, config_path: str = "../co
         where = ", then ".join(str(f.relative_to(conf.parent) if f.is_relative_to(conf.parent) else f) for f in files)
         if group == "experiment":
             out += [f"experiment={option} ({where}):", _indent(option_file.read_text().strip("\n")), ""]
+            per_agent = _option_file("experiment_agent", f"{option}_{chosen.get('agent')}", conf_dirs)
+            if per_agent is not None:  # the preset's settings for the chosen agent
+                shown = per_agent.relative_to(conf.parent) if per_agent.is_relative_to(conf.parent) else per_agent
+                out += [f"experiment={option} with agent={chosen.get('agent')} ({shown}):",
+                        _indent(per_agent.read_text().strip("\n")), ""]
             continue
         body = "\n\n".join(_without_defaults(f.read_text()) for f in files)
         out += [f"Keys of {group}={option} ({where}, under {group}.):", _indent(body), ""]
