@@ -415,8 +415,11 @@ class AgentConfig:
                                              "plays (null = the online weights)")
     bootstrap_cache: int = spec(0, ge=0, doc="ldm: transitions whose bootstrap is kept until the next target copy "
                                 "(0 = off)")
-    value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns"),
-                                             doc="ldm: V fitted on next states turned by random quarter turns")
+    value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns", "shifts"),
+                                             doc="ldm: V fitted on next states turned by random quarter turns | "
+                                             "moved by random shifts")
+    value_shift: Optional[int] = spec(None, ge=1, le=32, doc="ldm: largest shift of value_augmentation=shifts, "
+                                      "pixels")
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
     q_proposal_fit: int = spec(0, ge=0, doc="ldm: target proposals per next state Q is also fitted on, toward "
                                "V⁻ of their prediction (0 = off)")
@@ -441,7 +444,7 @@ class AgentConfig:
                 elif node.name != agent and node[key] is not None:
                     found.append(f"{prefix}{key}={_show(node[key])} is set but only agent={agent} uses it "
                                  f"(agent.name={node.name})")
-        for key in ("autocast", "value_augmentation"):
+        for key in ("autocast", "value_augmentation", "value_shift"):
             if node.name != "ldm" and node.get(key) is not None:
                 found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
         if node.name == "rs" and node.get("q_architecture", "fcn") != "fcn":

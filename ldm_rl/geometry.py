@@ -52,6 +52,7 @@ __all__ = [
     "center_crop",
     "rotate",
     "quarter_turns",
+    "shift",
     "rotate_stack",
     "unrotate_stack",
     "heights_to_classes",
@@ -481,6 +482,27 @@ def quarter_turns(images: Tensor, turns: Tensor) -> Tensor:
                          + (f" {turns.dtype}" if torch.is_tensor(turns) else ""))
     rows = torch.arange(images.shape[0], device=images.device)
     return torch.stack([images.rot90(k, (-2, -1)) for k in range(4)])[turns.remainder(4).to(images.device), rows]
+
+
+def shift(images: Tensor, offsets: Tensor) -> Tensor:
+    """Translate each of ``[B, C, H, W]`` images by its own whole-pixel offset, ``offsets`` ``[B, 2]`` int
+    (rows, cols): ``out[b, :, r, c] = images[b, :, r − dr, c − dc]``, 0 where that pixel lies outside. Exact
+    (pixels are moved, not resampled); a zero offset returns the image unchanged."""
+    images = _check_images(images)
+    if images.dim() != 4:
+        raise ValueError(f"images must be [B, C, H, W], got {tuple(images.shape)}")
+    b, _, h, w = images.shape
+    if not torch.is_tensor(offsets) or offsets.is_floating_point() or tuple(offsets.shape) != (b, 2):
+        shape = tuple(offsets.shape) if torch.is_tensor(offsets) else type(offsets).__name__
+        raise ValueError(f"offsets must be [{b}, 2] int (rows, cols per image), got {shape}"
+                         + (f" {offsets.dtype}" if torch.is_tensor(offsets) else ""))
+    offsets = offsets.to(images.device)
+    rows = torch.arange(h, device=images.device)[None] - offsets[:, :1]  # [B, H] source rows
+    cols = torch.arange(w, device=images.device)[None] - offsets[:, 1:]  # [B, W] source cols
+    inside = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]  # [B, H, W]
+    picked = images[torch.arange(b, device=images.device)[:, None, None], :,
+                    rows.clamp(0, h - 1)[:, :, None], cols.clamp(0, w - 1)[:, None, :]]  # [B, H, W, C]
+    return picked.permute(0, 3, 1, 2) * inside[:, None].to(images.dtype)
 
 
 def rotate_stack(images: Tensor, num_rotations: int, mode: str = "bilinear") -> Tensor:

@@ -351,6 +351,30 @@ def test_flat_index_conversions_refuse_floats_and_wrong_widths():
         action_to_flat(torch.zeros(5, 3), 4, 4)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_shift_moves_each_image_by_its_own_offset_and_fills_the_border_with_zeros(seed):
+    gen = torch.Generator().manual_seed(seed)
+    images = torch.rand(5, 2, 11, 9, generator=gen) + 0.5  # no zeros of its own
+    offsets = torch.randint(-4, 5, (5, 2), generator=gen)
+    offsets[0] = 0
+    out = g.shift(images, offsets)
+    assert torch.equal(out[0], images[0])  # a zero offset is the identity
+    for row, (dr, dc) in enumerate(offsets.tolist()):
+        for r in range(11):
+            for c in range(9):
+                sr, sc = r - dr, c - dc
+                want = images[row, :, sr, sc] if 0 <= sr < 11 and 0 <= sc < 9 else torch.zeros(2)
+                assert torch.equal(out[row, :, r, c], want), (row, r, c)
+    # shifting back recovers the pixels that stayed inside, exactly
+    back = g.shift(out, -offsets)
+    kept = g.shift(g.shift(torch.ones_like(images), offsets), -offsets) > 0
+    assert torch.equal(back[kept], images[kept]) and kept.float().mean() < 1
+    with pytest.raises(ValueError, match=r"offsets must be \[5, 2\] int"):
+        g.shift(images, offsets.float())
+    with pytest.raises(ValueError, match=r"offsets must be \[5, 2\] int"):
+        g.shift(images, offsets[:, :1])
+
+
 def test_quarter_turns_turn_each_image_by_its_own_count_exactly():
     images = torch.rand(6, 2, 9, 9, generator=torch.Generator().manual_seed(0))
     turns = torch.tensor([0, 1, 2, 3, 5, -1])

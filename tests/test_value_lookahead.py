@@ -6,6 +6,7 @@ import pytest
 import torch
 from torchrl.objectives import HardUpdate
 
+from ldm_rl import geometry
 from ldm_rl.objectives import LookaheadLoss
 from policy_helpers import tiny_networks, transitions
 
@@ -253,3 +254,37 @@ def test_quarter_turn_augmentation_fits_v_on_turned_copies_of_the_next_states():
     torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
     with pytest.raises(ValueError, match="value_augmentation must be one of"):
         make_loss(value_augmentation="flips")
+
+
+def test_shift_augmentation_fits_v_on_shifted_copies_of_the_next_states():
+    """Each row's V input (real and predicted next state) is its stored heightmap moved by one offset of at most
+    ``value_shift`` pixels per axis, the same for both; over a seeded batch the offsets vary; the targets do not
+    move."""
+    loss = make_loss(value_augmentation="shifts", value_shift=2)
+    batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
+    batch["next", "heightmap"] = batch["next", "heightmap"] + 0.01  # no zero pixels: a shift shows at the border
+    seen = []
+    original = loss.value_network.value_and_reward
+    loss.value_network.value_and_reward = lambda heightmap, in_hand: (seen.append(heightmap.detach()), original(heightmap, in_hand))[1]
+    torch.manual_seed(3)
+    out = loss(batch)
+    real, predicted = seen
+    stored = batch["next", "heightmap"]
+    plain = make_loss()
+    predicted_plain = []
+    original_plain = plain.value_network.value_and_reward
+    plain.value_network.value_and_reward = lambda h, i: (predicted_plain.append(h.detach()), original_plain(h, i))[1]
+    with torch.no_grad():
+        plain(batch.clone())
+    found = []
+    for row in range(24):
+        matches = [(dr, dc) for dr in range(-2, 3) for dc in range(-2, 3)
+                   if torch.equal(real[row], geometry.shift(stored[row:row + 1], torch.tensor([[dr, dc]]))[0])]
+        assert len(matches) == 1, f"row {row}: V saw no shift within 2 px of its next state"
+        found.append(matches[0])
+        shifted_prediction = geometry.shift(predicted_plain[1][row:row + 1], torch.tensor([matches[0]]))[0]
+        assert torch.equal(predicted[row], shifted_prediction)  # the prediction moved by the same offset
+    assert len(set(found)) > 5  # the rows drew different offsets
+    torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
+    with pytest.raises(ValueError, match="value_shift must be an int >= 1"):
+        make_loss(value_augmentation="shifts", value_shift=0)

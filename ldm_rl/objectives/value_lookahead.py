@@ -47,7 +47,7 @@ from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS"]
 
-VALUE_AUGMENTATIONS = (None, "quarter_turns")
+VALUE_AUGMENTATIONS = (None, "quarter_turns", "shifts")
 
 
 class LookaheadLoss(TransitionLoss):
@@ -88,6 +88,12 @@ class LookaheadLoss(TransitionLoss):
             random yaws, physics and success blind to a turn about the vertical); Q and the LDM are
             equivariant to quarter turns by construction, the V CNN is not, and it is the one network fitted
             on whole scenes. The targets are computed on the states as stored (a turn leaves them unchanged).
+            ``"shifts"``: each next state moved by its own random whole-pixel offset, uniform in
+            ``[−value_shift, value_shift]`` per axis, the uncovered border read as table (0 m): the random
+            shifts of DrQ / RAD. A scene's value does not depend on where on the table it stands; V's fully
+            connected head is the one part of the agent that can tell, and it can memorise the few scenes seen.
+        value_shift: the largest shift of ``"shifts"``, pixels (≥ 1). Spawned objects stand ≥ 2 cm (6 px) inside
+            the workspace's edge; an object the agent put at the edge may be cut by a shift, a rare distortion.
         q_proposal_fit: M in [0, N]: Q is also fitted, at each live next state ``s'``, on the first M of its
             target proposals ``Ā_N(s')`` (the target Q map's best, then the next after inhibition), toward
             ``V⁻(f⁻(s', a'))``, the score the target already computed for them (clamped to ``target_range``):
@@ -132,6 +138,7 @@ class LookaheadLoss(TransitionLoss):
         return_lower_bound: bool = False,
         bootstrap_cache: int = 0,
         value_augmentation: str | None = None,
+        value_shift: int = 4,
         target_uncertainty_penalty: float = 0.0,
         q_log_floor: float | None = None,
         q_proposal_fit: int = 0,
@@ -146,6 +153,9 @@ class LookaheadLoss(TransitionLoss):
         if value_augmentation not in VALUE_AUGMENTATIONS:
             raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {value_augmentation!r}")
         self.value_augmentation = value_augmentation
+        if isinstance(value_shift, bool) or not isinstance(value_shift, int) or value_shift < 1:
+            raise ValueError(f"value_shift must be an int >= 1 (pixels), got {value_shift!r}")
+        self.value_shift = value_shift
         self.return_lower_bound = bool(return_lower_bound)
         if q_target not in ("max", "lookahead"):
             raise ValueError(f"q_target must be 'max' or 'lookahead', got {q_target!r}")
@@ -315,9 +325,16 @@ class LookaheadLoss(TransitionLoss):
         loss = F.smooth_l1_loss(q_pred, self.q_scale.encode(values.reshape(-1, 1)), reduction="none")
         return (loss * weight.index_select(0, rows).repeat_interleave(m, 0)).mean()
 
-    def _draw_turns(self, batch: int, device) -> torch.Tensor | None:
-        """``[batch]`` quarter-turn counts for ``value_augmentation`` (torch's global RNG), or None when off."""
-        return None if self.value_augmentation is None else torch.randint(4, (batch,), device=device)
+    def _draw_augmentation(self, batch: int, device):
+        """``heightmap [batch, 1, H, W] -> the same, augmented``: one draw per row of ``value_augmentation``
+        (torch's global RNG), the same for a row's real and predicted next state; identity when off."""
+        if self.value_augmentation == "quarter_turns":
+            turns = torch.randint(4, (batch,), device=device)
+            return lambda heightmap: geometry.quarter_turns(heightmap, turns)
+        if self.value_augmentation == "shifts":
+            offsets = torch.randint(-self.value_shift, self.value_shift + 1, (batch, 2), device=device)
+            return lambda heightmap: geometry.shift(heightmap, offsets)
+        return lambda heightmap: heightmap
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         self.check_batch(tensordict)
@@ -333,17 +350,13 @@ class LookaheadLoss(TransitionLoss):
         next_heightmap = tensordict.get((keys.NEXT, k.heightmap))
         next_in_hand = tensordict.get((keys.NEXT, k.in_hand))
         reward = tensordict.get(k.reward).reshape(-1, 1).float()
-        turns = self._draw_turns(next_heightmap.shape[0], next_heightmap.device)
-
-        def turned(heightmap):  # the same count for a row's real and predicted next state
-            return heightmap if turns is None else geometry.quarter_turns(heightmap, turns)
-
-        v_real, r_real = self.value_network.value_and_reward(turned(next_heightmap), next_in_hand)
+        augmented = self._draw_augmentation(next_heightmap.shape[0], next_heightmap.device)
+        v_real, r_real = self.value_network.value_and_reward(augmented(next_heightmap), next_in_hand)
         loss_value, loss_reward = huber(v_real, v_target), huber(r_real, reward)
         if self.value_on_prediction:
             predicted = predicted_next_state(self.dynamics, tensordict, logits_key=k.next_logits,
                                              state_keys=(k.heightmap, k.in_hand, k.holding, k.action))
-            v_pred, r_pred = self.value_network.value_and_reward(turned(predicted.heightmap), next_in_hand)
+            v_pred, r_pred = self.value_network.value_and_reward(augmented(predicted.heightmap), next_in_hand)
             loss_value = loss_value + huber(v_pred, v_target)
             loss_reward = loss_reward + huber(r_pred, reward)
         td_error = (v_real.detach() - v_target).abs().reshape(-1)
