@@ -415,9 +415,9 @@ class AgentConfig:
                                              "plays (null = the online weights)")
     bootstrap_cache: int = spec(0, ge=0, doc="ldm: transitions whose bootstrap is kept until the next target copy "
                                 "(0 = off)")
-    value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns", "shifts"),
+    value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns", "shifts", "symmetries"),
                                              doc="ldm: V fitted on next states turned by random quarter turns | "
-                                             "moved by random shifts")
+                                             "moved by random shifts | turned, mirrored and shifted")
     value_shift: Optional[int] = spec(None, ge=1, le=32, doc="ldm: largest shift of value_augmentation=shifts, "
                                       "pixels")
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")

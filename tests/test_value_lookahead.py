@@ -288,3 +288,34 @@ def test_shift_augmentation_fits_v_on_shifted_copies_of_the_next_states():
     torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
     with pytest.raises(ValueError, match="value_shift must be an int >= 1"):
         make_loss(value_augmentation="shifts", value_shift=0)
+
+
+def test_symmetry_augmentation_turns_mirrors_and_shifts_each_next_state():
+    """Each row's V input is its stored next state under one element of the square's symmetries (quarter turn,
+    then a mirror or not) followed by one shift of at most ``value_shift`` px; over a seeded batch both mirrored
+    and plain rows, several turns and several shifts occur."""
+    loss = make_loss(value_augmentation="symmetries", value_shift=1)
+    batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
+    batch["next", "heightmap"] = batch["next", "heightmap"] + 0.01
+    seen = []
+    original = loss.value_network.value_and_reward
+    loss.value_network.value_and_reward = lambda heightmap, in_hand: (seen.append(heightmap.detach()), original(heightmap, in_hand))[1]
+    torch.manual_seed(5)
+    loss(batch)
+    real = seen[0]
+    stored = batch["next", "heightmap"]
+    found = []
+    for row in range(24):
+        matches = []
+        for k in range(4):
+            turned = stored[row:row + 1].rot90(k, (-2, -1))
+            for mirrored in (False, True):
+                image = turned.transpose(-2, -1) if mirrored else turned
+                for dr in (-1, 0, 1):
+                    for dc in (-1, 0, 1):
+                        if torch.equal(real[row], geometry.shift(image, torch.tensor([[dr, dc]]))[0]):
+                            matches.append((k, mirrored, dr, dc))
+        assert len(matches) == 1, f"row {row}: V saw {len(matches)} symmetries of its next state, not one"
+        found.append(matches[0])
+    assert {m[1] for m in found} == {False, True}
+    assert len({m[0] for m in found}) >= 3 and len({m[2:] for m in found}) >= 4

@@ -47,7 +47,7 @@ from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS"]
 
-VALUE_AUGMENTATIONS = (None, "quarter_turns", "shifts")
+VALUE_AUGMENTATIONS = (None, "quarter_turns", "shifts", "symmetries")
 
 
 class LookaheadLoss(TransitionLoss):
@@ -92,6 +92,8 @@ class LookaheadLoss(TransitionLoss):
             ``[−value_shift, value_shift]`` per axis, the uncovered border read as table (0 m): the random
             shifts of DrQ / RAD. A scene's value does not depend on where on the table it stands; V's fully
             connected head is the one part of the agent that can tell, and it can memorise the few scenes seen.
+            ``"symmetries"``: all of the workspace's exact pixel symmetries at once — a random quarter turn, a
+            mirror (transpose) with probability 1/2, then a random shift (the in-hand image is left as it is).
         value_shift: the largest shift of ``"shifts"``, pixels (≥ 1). Spawned objects stand ≥ 2 cm (6 px) inside
             the workspace's edge; an object the agent put at the edge may be cut by a shift, a rare distortion.
         q_proposal_fit: M in [0, N]: Q is also fitted, at each live next state ``s'``, on the first M of its
@@ -334,6 +336,15 @@ class LookaheadLoss(TransitionLoss):
         if self.value_augmentation == "shifts":
             offsets = torch.randint(-self.value_shift, self.value_shift + 1, (batch, 2), device=device)
             return lambda heightmap: geometry.shift(heightmap, offsets)
+        if self.value_augmentation == "symmetries":
+            turns = torch.randint(4, (batch,), device=device)
+            mirror = (torch.rand(batch, device=device) < 0.5).view(batch, 1, 1, 1)
+            offsets = torch.randint(-self.value_shift, self.value_shift + 1, (batch, 2), device=device)
+
+            def transform(heightmap):
+                turned = geometry.quarter_turns(heightmap, turns)
+                return geometry.shift(torch.where(mirror, turned.transpose(-2, -1), turned), offsets)
+            return transform
         return lambda heightmap: heightmap
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
