@@ -45,9 +45,33 @@ from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
 from ldm_rl.torch_utils import eval_mode
 
-__all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS"]
+__all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS", "draw_value_augmentation"]
 
 VALUE_AUGMENTATIONS = (None, "quarter_turns", "shifts", "symmetries")
+
+
+def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, device=None):
+    """One random draw per row of augmentation ``kind`` (:data:`VALUE_AUGMENTATIONS`; torch's global RNG), returned
+    as ``heightmap [batch, 1, H, W] -> the same, transformed``: apply it to several images of a row (the real and
+    the predicted next state) to move them alike. ``None``: the identity. ``"quarter_turns"``: a random quarter
+    turn; ``"shifts"``: a random whole-pixel offset in ``[−shift, shift]`` per axis (the border read as 0 m);
+    ``"symmetries"``: a quarter turn, a mirror (transpose) half the time, then a shift."""
+    if kind not in VALUE_AUGMENTATIONS:
+        raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {kind!r}")
+    if kind is None:
+        return lambda heightmap: heightmap
+    turns = torch.randint(4, (batch,), device=device) if kind in ("quarter_turns", "symmetries") else None
+    mirror = (torch.rand(batch, device=device) < 0.5).view(batch, 1, 1, 1) if kind == "symmetries" else None
+    offsets = (torch.randint(-shift, shift + 1, (batch, 2), device=device) if kind in ("shifts", "symmetries")
+               else None)
+
+    def transform(heightmap: torch.Tensor) -> torch.Tensor:
+        if turns is not None:
+            heightmap = geometry.quarter_turns(heightmap, turns)
+        if mirror is not None:
+            heightmap = torch.where(mirror, heightmap.transpose(-2, -1), heightmap)
+        return heightmap if offsets is None else geometry.shift(heightmap, offsets)
+    return transform
 
 
 class LookaheadLoss(TransitionLoss):
@@ -328,24 +352,8 @@ class LookaheadLoss(TransitionLoss):
         return (loss * weight.index_select(0, rows).repeat_interleave(m, 0)).mean()
 
     def _draw_augmentation(self, batch: int, device):
-        """``heightmap [batch, 1, H, W] -> the same, augmented``: one draw per row of ``value_augmentation``
-        (torch's global RNG), the same for a row's real and predicted next state; identity when off."""
-        if self.value_augmentation == "quarter_turns":
-            turns = torch.randint(4, (batch,), device=device)
-            return lambda heightmap: geometry.quarter_turns(heightmap, turns)
-        if self.value_augmentation == "shifts":
-            offsets = torch.randint(-self.value_shift, self.value_shift + 1, (batch, 2), device=device)
-            return lambda heightmap: geometry.shift(heightmap, offsets)
-        if self.value_augmentation == "symmetries":
-            turns = torch.randint(4, (batch,), device=device)
-            mirror = (torch.rand(batch, device=device) < 0.5).view(batch, 1, 1, 1)
-            offsets = torch.randint(-self.value_shift, self.value_shift + 1, (batch, 2), device=device)
-
-            def transform(heightmap):
-                turned = geometry.quarter_turns(heightmap, turns)
-                return geometry.shift(torch.where(mirror, turned.transpose(-2, -1), turned), offsets)
-            return transform
-        return lambda heightmap: heightmap
+        """:func:`draw_value_augmentation` of this loss's ``value_augmentation`` and ``value_shift``."""
+        return draw_value_augmentation(self.value_augmentation, batch, shift=self.value_shift, device=device)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         self.check_batch(tensordict)
