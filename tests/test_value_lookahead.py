@@ -225,17 +225,27 @@ def test_bootstrap_cache_needs_deterministic_target_proposals():
         make_loss(bootstrap_cache=-1)
 
 
+def v_inputs(loss, batch, seed=None) -> list[torch.Tensor]:
+    """The heightmaps ``loss``'s V is fitted on in one call on ``batch`` (real next states, then predicted ones)."""
+    seen = []
+    original = loss.value_network.value_and_reward
+    loss.value_network.value_and_reward = lambda heightmap, in_hand: (seen.append(heightmap.detach()), original(heightmap, in_hand))[1]
+    if seed is not None:
+        torch.manual_seed(seed)
+    with torch.no_grad():
+        loss(batch)
+    loss.value_network.value_and_reward = original
+    return seen
+
+
 def test_quarter_turn_augmentation_fits_v_on_turned_copies_of_the_next_states():
     """Each row's V input (real and predicted next state) is its stored heightmap turned by one whole quarter-turn
     count, the same for both; over a seeded batch all four counts occur; the targets do not move."""
     loss = make_loss(value_augmentation="quarter_turns")
     batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
-    seen = []
-    original = loss.value_network.value_and_reward
-    loss.value_network.value_and_reward = lambda heightmap, in_hand: (seen.append(heightmap.detach()), original(heightmap, in_hand))[1]
     torch.manual_seed(3)
-    out = loss(batch)
-    real, predicted = seen
+    out = loss(batch.clone())
+    real, predicted = v_inputs(loss, batch, seed=3)
     stored = batch["next", "heightmap"]
     turns = []
     for row in range(24):
@@ -244,13 +254,9 @@ def test_quarter_turn_augmentation_fits_v_on_turned_copies_of_the_next_states():
         turns.append(matches[0])
     assert set(turns) == {0, 1, 2, 3}
     plain = make_loss()
-    with torch.no_grad():
-        predicted_plain = []
-        original_plain = plain.value_network.value_and_reward
-        plain.value_network.value_and_reward = lambda h, i: (predicted_plain.append(h.detach()), original_plain(h, i))[1]
-        plain(batch.clone())
+    predicted_plain = v_inputs(plain, batch.clone())[1]
     for row, k in enumerate(turns):  # the prediction is turned by the same count as the real state
-        assert torch.equal(predicted[row], predicted_plain[1][row].rot90(k, (-2, -1)))
+        assert torch.equal(predicted[row], predicted_plain[row].rot90(k, (-2, -1)))
     torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
     with pytest.raises(ValueError, match="value_augmentation must be one of"):
         make_loss(value_augmentation="flips")
@@ -263,26 +269,19 @@ def test_shift_augmentation_fits_v_on_shifted_copies_of_the_next_states():
     loss = make_loss(value_augmentation="shifts", value_shift=2)
     batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
     batch["next", "heightmap"] = batch["next", "heightmap"] + 0.01  # no zero pixels: a shift shows at the border
-    seen = []
-    original = loss.value_network.value_and_reward
-    loss.value_network.value_and_reward = lambda heightmap, in_hand: (seen.append(heightmap.detach()), original(heightmap, in_hand))[1]
     torch.manual_seed(3)
-    out = loss(batch)
-    real, predicted = seen
+    out = loss(batch.clone())
+    real, predicted = v_inputs(loss, batch, seed=3)
     stored = batch["next", "heightmap"]
     plain = make_loss()
-    predicted_plain = []
-    original_plain = plain.value_network.value_and_reward
-    plain.value_network.value_and_reward = lambda h, i: (predicted_plain.append(h.detach()), original_plain(h, i))[1]
-    with torch.no_grad():
-        plain(batch.clone())
+    predicted_plain = v_inputs(plain, batch.clone())[1]
     found = []
     for row in range(24):
         matches = [(dr, dc) for dr in range(-2, 3) for dc in range(-2, 3)
                    if torch.equal(real[row], geometry.shift(stored[row:row + 1], torch.tensor([[dr, dc]]))[0])]
         assert len(matches) == 1, f"row {row}: V saw no shift within 2 px of its next state"
         found.append(matches[0])
-        shifted_prediction = geometry.shift(predicted_plain[1][row:row + 1], torch.tensor([matches[0]]))[0]
+        shifted_prediction = geometry.shift(predicted_plain[row:row + 1], torch.tensor([matches[0]]))[0]
         assert torch.equal(predicted[row], shifted_prediction)  # the prediction moved by the same offset
     assert len(set(found)) > 5  # the rows drew different offsets
     torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
@@ -297,12 +296,7 @@ def test_symmetry_augmentation_turns_mirrors_and_shifts_each_next_state():
     loss = make_loss(value_augmentation="symmetries", value_shift=1)
     batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
     batch["next", "heightmap"] = batch["next", "heightmap"] + 0.01
-    seen = []
-    original = loss.value_network.value_and_reward
-    loss.value_network.value_and_reward = lambda heightmap, in_hand: (seen.append(heightmap.detach()), original(heightmap, in_hand))[1]
-    torch.manual_seed(5)
-    loss(batch)
-    real = seen[0]
+    real = v_inputs(loss, batch, seed=5)[0]
     stored = batch["next", "heightmap"]
     found = []
     for row in range(24):
