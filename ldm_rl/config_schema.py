@@ -418,8 +418,8 @@ class AgentConfig:
     value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns", "shifts", "symmetries"),
                                              doc="ldm: V fitted on next states turned by random quarter turns | "
                                              "moved by random shifts | turned, mirrored and shifted")
-    value_shift: Optional[int] = spec(None, ge=1, le=32, doc="ldm: largest shift of value_augmentation=shifts, "
-                                      "pixels")
+    value_shift: Optional[int] = spec(None, ge=1, le=32, doc="ldm: largest shift of value_augmentation=shifts "
+                                      "or symmetries, pixels")
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
     q_proposal_fit: int = spec(0, ge=0, doc="ldm: target proposals per next state Q is also fitted on, toward "
                                "V⁻ of their prediction (0 = off)")

@@ -7,7 +7,7 @@ import torch
 from torchrl.objectives import HardUpdate
 
 from ldm_rl import geometry
-from ldm_rl.objectives import LookaheadLoss
+from ldm_rl.objectives import LookaheadLoss, draw_value_augmentation
 from policy_helpers import tiny_networks, transitions
 
 # these tests build the loss alone; the agents pair it with TargetSync (tests/test_target_sync.py)
@@ -287,6 +287,10 @@ def test_shift_augmentation_fits_v_on_shifted_copies_of_the_next_states():
     torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
     with pytest.raises(ValueError, match="value_shift must be an int >= 1"):
         make_loss(value_augmentation="shifts", value_shift=0)
+    with pytest.raises(ValueError, match="value_shift must be an int >= 1"):
+        draw_value_augmentation("symmetries", 4, shift=2.5)
+    with pytest.raises(ValueError, match="value_augmentation must be one of"):
+        draw_value_augmentation("flips", 4)
 
 
 def test_symmetry_augmentation_turns_mirrors_and_shifts_each_next_state():

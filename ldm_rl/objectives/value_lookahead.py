@@ -50,6 +50,12 @@ __all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS", "draw_value_augmentation"]
 VALUE_AUGMENTATIONS = (None, "quarter_turns", "shifts", "symmetries")
 
 
+def _check_shift(shift) -> int:
+    if isinstance(shift, bool) or not isinstance(shift, int) or shift < 1:
+        raise ValueError(f"value_shift must be an int >= 1 (pixels), got {shift!r}")
+    return shift
+
+
 def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, device=None):
     """One random draw per row of augmentation ``kind`` (:data:`VALUE_AUGMENTATIONS`; torch's global RNG), returned
     as ``heightmap [batch, 1, H, W] -> the same, transformed``: apply it to several images of a row (the real and
@@ -58,6 +64,7 @@ def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, dev
     ``"symmetries"``: a quarter turn, a mirror (transpose) half the time, then a shift."""
     if kind not in VALUE_AUGMENTATIONS:
         raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {kind!r}")
+    _check_shift(shift)
     if kind is None:
         return lambda heightmap: heightmap
     turns = torch.randint(4, (batch,), device=device) if kind in ("quarter_turns", "symmetries") else None
@@ -118,8 +125,8 @@ class LookaheadLoss(TransitionLoss):
             connected head is the one part of the agent that can tell, and it can memorise the few scenes seen.
             ``"symmetries"``: all of the workspace's exact pixel symmetries at once — a random quarter turn, a
             mirror (transpose) with probability 1/2, then a random shift (the in-hand image is left as it is).
-        value_shift: the largest shift of ``"shifts"``, pixels (≥ 1). Spawned objects stand ≥ 2 cm (6 px) inside
-            the workspace's edge; an object the agent put at the edge may be cut by a shift, a rare distortion.
+        value_shift: the largest shift of ``"shifts"`` and ``"symmetries"``, pixels (≥ 1). An object standing
+            within that many pixels of the workspace's edge may be cut by a shift: keep it to a few pixels.
         q_proposal_fit: M in [0, N]: Q is also fitted, at each live next state ``s'``, on the first M of its
             target proposals ``Ā_N(s')`` (the target Q map's best, then the next after inhibition), toward
             ``V⁻(f⁻(s', a'))``, the score the target already computed for them (clamped to ``target_range``):
@@ -179,9 +186,7 @@ class LookaheadLoss(TransitionLoss):
         if value_augmentation not in VALUE_AUGMENTATIONS:
             raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {value_augmentation!r}")
         self.value_augmentation = value_augmentation
-        if isinstance(value_shift, bool) or not isinstance(value_shift, int) or value_shift < 1:
-            raise ValueError(f"value_shift must be an int >= 1 (pixels), got {value_shift!r}")
-        self.value_shift = value_shift
+        self.value_shift = _check_shift(value_shift)
         self.return_lower_bound = bool(return_lower_bound)
         if q_target not in ("max", "lookahead"):
             raise ValueError(f"q_target must be 'max' or 'lookahead', got {q_target!r}")
