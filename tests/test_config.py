@@ -487,7 +487,8 @@ def _differences(a, b, prefix=""):
     # the Table 2 cure: only the training scenes' object counts (evaluations stay on 3 blocks)
     ("table2_block_stacking", {"env.train_object_counts"}),
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
-    ("curves_house_building", {"agent.lr.value"}),
+    # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
+    ("curves_house_building", {"agent.lr.value", "agent.value_augmentation"}),
     ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
@@ -507,10 +508,15 @@ def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, t
 @pytest.mark.parametrize("agent, fit, floor", [("ldm", 3, 0.01), ("fcdqn", 0, 0.01), ("dynaq", 0, 0.01), ("rs", 0, None)])
 def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floor):
     """conf/experiment_agent/<experiment>_<agent>.yaml: bin packing's Q scale for every agent with a Q network,
-    the proposal fit for the ldm agent only (each refused for the others), and the command line still wins."""
+    the proposal fit and the house's V augmentation for the ldm agent only (each refused for the others), and the
+    command line still wins."""
     cfg = make_cfg("experiment=curves_bin_packing", f"agent={agent}", config_name="train_policy")
     assert cfg.agent.get("q_proposal_fit") == fit and cfg.agent.get("q_log_floor") == floor
     config_schema.validate_config(cfg, config_schema.TrainPolicyConfig)
     mine = make_cfg("experiment=curves_bin_packing", f"agent={agent}", "agent.q_log_floor=null", config_name="train_policy")
     assert mine.agent.get("q_log_floor") is None
-    assert make_cfg("experiment=curves_house_building", f"agent={agent}", config_name="train_policy").agent.get("q_log_floor") is None
+    house = make_cfg("experiment=curves_house_building", f"agent={agent}", config_name="train_policy")
+    assert house.agent.get("q_log_floor") is None
+    # the house's V augmentation reaches the ldm agent only (the others refuse the key)
+    assert house.agent.get("value_augmentation") == ("shifts" if agent == "ldm" else None)
+    config_schema.validate_config(house, config_schema.TrainPolicyConfig)
