@@ -258,6 +258,50 @@ def test_the_documented_comparison_is_what_the_script_rebuilds_from_the_kept_run
     assert len(rows) > 2 and all(row in (ROOT / "docs" / "policy.md").read_text() for row in rows)
 
 
+def test_the_documented_comparison_of_today_is_what_its_documented_command_rebuilds(tmp_path):
+    """The headline table of docs/policy.md ("The comparison today") is what its documented --only command writes
+    from the kept runs, and names one line per agent and task."""
+    import shlex
+
+    doc = (ROOT / "docs" / "policy.md").read_text()
+    command = re.search(r"python -m ldm_rl.reports.plot_learning_curves docs/results/policy --out "
+                        r"docs/img/comparison_today.png.*?\n```", doc, re.S).group(0)[: -len("```")]
+    argv = shlex.split(command.replace("\\\n", " "))[3:]
+    only = argv[argv.index("--only") + 1:]
+    argv = [str(ROOT / a) if a == "docs/results/policy" else a for a in argv]
+    argv[argv.index("--out") + 1] = str(tmp_path / "today.png")
+    argv[argv.index("--table") + 1] = str(tmp_path / "today.md")
+    plot_learning_curves.main(argv)
+    rebuilt = (tmp_path / "today.md").read_text()
+    assert rebuilt == (ROOT / "docs" / "results" / "policy" / "comparison_today.md").read_text()
+    rows = [line.split(" | ") for line in rebuilt.splitlines()[2:]]
+    assert all(" | ".join(row) in doc for row in rows) and len(rows) >= len(set(only))
+    pairs = [(row[0], row[1].split(" [")[0]) for row in rows]
+    assert len(pairs) == len(set(pairs))  # one line per agent and task
+
+
+def test_only_keeps_the_named_lines_and_refuses_a_name_that_is_no_line(tmp_path, capsys):
+    def keep(stem, agent, task, seed):
+        with open(tmp_path / f"{stem}_curve.csv", "w", newline="") as f:
+            f.write("updates,episodes,success_rate\n0,0,0.0\n10,20,0.5\n")
+        (tmp_path / f"{stem}_final_metrics.json").write_text(json.dumps(
+            {"task": task, "num_objects": 3, "agent": agent, "seed": seed, "episodes": 20, "success_rate": 0.5}))
+
+    keep("curves_block_stacking_ldm_seed0_new", "ldm", "ldm_rl/BlockStacking-v0", 0)
+    keep("curves_block_stacking_ldm_seed0_old", "ldm", "ldm_rl/BlockStacking-v0", 0)
+    keep("curves_block_stacking_fcdqn_seed0_old", "fcdqn", "ldm_rl/BlockStacking-v0", 0)
+    keep("curves_house_building_ldm_seed0_old", "ldm", "ldm_rl/HouseBuilding-v0", 0)
+    table = tmp_path / "t.md"
+    rows = plot_learning_curves.main([str(tmp_path), "--out", str(tmp_path / "c.png"), "--table", str(table),
+                                      "--only", "LDM [new]", "FC-DQN [old]"])
+    assert {(r["task"], r["label"]) for r in rows} == {("ldm_rl/BlockStacking-v0", "LDM [new]"),
+                                                       ("ldm_rl/BlockStacking-v0", "FC-DQN [old]")}
+    assert [line.split(" | ")[1] for line in table.read_text().splitlines()[2:]] == ["LDM [new]", "FC-DQN [old]"]
+    with pytest.raises(SystemExit) as stop:
+        plot_learning_curves.main([str(tmp_path), "--out", str(tmp_path / "c.png"), "--only", "LDM [nwe]"])
+    assert stop.value.code == 2 and "--only 'LDM [nwe]': no such line" in capsys.readouterr().err
+
+
 def test_a_results_folder_names_its_lines_by_tag_and_reads_the_final_weights(tmp_path):
     def keep(stem, seed, points, final):
         with open(tmp_path / f"{stem}_curve.csv", "w", newline="") as f:

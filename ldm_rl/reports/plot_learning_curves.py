@@ -15,7 +15,9 @@ with its values of the keys that differ.
 Writes the figure (PNG) and a CSV of the plotted points (task, objects, agent, label, episodes, mean, se,
 n_seeds); default ``<first folder>/learning_curves.png`` and ``.csv``; ``--table T.md`` also writes the
 comparison table (one row per line: seeds, episodes to a mean success of 0.5 and 0.8, the final weights'
-success on 100 held-out episodes, the paper's end value).
+success on 100 held-out episodes, the paper's end value). ``--only LABEL ...`` keeps only the lines of those
+labels (as the legend names them, e.g. ``"LDM [mix23ema]"``), in every panel that has them: a headline figure
+of the current presets drawn from a results folder that also keeps their history.
 
 A folder may also be a results folder (``docs/results/policy``): the finished runs kept there as
 ``curves_<task>_<agent>_seed<k>[_<tag>]_curve.csv`` beside their ``_final_metrics.json`` (which names the task,
@@ -211,6 +213,18 @@ def group(runs: list[Run]) -> dict[tuple[str, int], dict[str, list[Run]]]:
     return out
 
 
+def select(panels: dict, only: list[str]) -> dict:
+    """``panels`` with only the lines labelled in ``only`` (panels left without a line are dropped); a label that
+    names no line is an error, so a typo does not drop a line silently."""
+    known = {label for lines in panels.values() for label in lines}
+    unknown = [label for label in only if label not in known]
+    if unknown:
+        raise ValueError(f"--only {', '.join(repr(u) for u in unknown)}: no such line; the lines are "
+                         f"{', '.join(sorted(known))}")
+    kept = {key: {label: runs for label, runs in lines.items() if label in only} for key, lines in panels.items()}
+    return {key: lines for key, lines in kept.items() if lines}
+
+
 def panel_title(task: str, num_objects: int) -> str:
     name, unit = TASKS.get(task, (task, "objects"))
     return f"{name} ({num_objects} {unit})"
@@ -231,12 +245,15 @@ def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
     spare_colours = iter(f"C{i}" for i in range(4, 10))
     colours: dict[str, str] = {}
     for ax, ((task, objects), lines) in zip(axes.flat, panels.items()):
+        per_agent = defaultdict(int)
+        for runs in lines.values():
+            per_agent[runs[0].agent] += 1
         for label, runs in lines.items():
             agent = runs[0].agent
-            if label not in colours:  # an agent's own colour; a variant of it (or an unknown agent) the next spare one
-                own = agent in AGENTS and label == AGENTS[agent][0]
-                colours[label] = AGENTS[agent][1] if own else next(spare_colours, None)
-            colour = colours[label]
+            if agent in AGENTS and per_agent[agent] == 1:  # an agent's only line in the panel: the agent's colour
+                colour = AGENTS[agent][1]
+            else:  # one of several variants (or an unknown agent): a spare colour, the same in every panel
+                colour = colours.setdefault(label, next(spare_colours, None))
             points = mean_curve(runs)
             xs, means, ses = zip(*points)
             seeds = len(runs)
@@ -306,6 +323,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--out", type=Path, default=None,
                         help="figure path (.png; the CSV goes beside it, .csv); default <first folder>/learning_curves.png")
     parser.add_argument("--table", type=Path, default=None, help="also write the comparison table (markdown) here (.md)")
+    parser.add_argument("--only", nargs="+", default=None, metavar="LABEL",
+                        help='draw and tabulate only the lines of these labels, e.g. "LDM [mix23ema]" "FC-DQN [ema]"')
     args = parser.parse_args(argv)
     if args.out is not None and args.out.suffix.lower() != ".png":
         parser.error(f"--out {args.out}: expected a .png path")
@@ -316,6 +335,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         if not runs:
             raise ValueError(f"no curve.csv found under {', '.join(str(f) for f in args.folders)}")
         panels = group(runs)
+        if args.only:
+            panels = select(panels, args.only)
     except ValueError as err:
         parser.exit(2, f"error: {err}\n")
     png = args.out or args.folders[0] / "learning_curves.png"
