@@ -413,6 +413,8 @@ class AgentConfig:
     return_lower_bound: bool = spec(False, doc="raise the targets to the return the episode collected")
     greedy_ema_decay: Optional[float] = spec(None, gt=0, lt=1, doc="EMA decay of the weights the greedy policy "
                                              "plays (null = the online weights)")
+    greedy_ema_tail: Optional[float] = spec(None, gt=0, le=1, doc="the average spans at most this fraction of the "
+                                            "updates so far (null = the decay alone)")
     bootstrap_cache: int = spec(0, ge=0, doc="ldm: transitions whose bootstrap is kept until the next target copy "
                                 "(0 = off)")
     value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns", "shifts", "symmetries"),
@@ -447,6 +449,9 @@ class AgentConfig:
         for key in ("autocast", "value_augmentation", "value_shift"):
             if node.name != "ldm" and node.get(key) is not None:
                 found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
+        if node.get("greedy_ema_tail") is not None and node.get("greedy_ema_decay") is None:
+            found.append(f"{prefix}greedy_ema_tail={_show(node.greedy_ema_tail)} is set but {prefix}greedy_ema_decay is "
+                         "null: the tail shortens an average, set the decay of the longest one")
         if node.name == "rs" and node.get("q_architecture", "fcn") != "fcn":
             found.append(f"{prefix}q_architecture={node.q_architecture} is set but agent=rs builds no Q network")
         if node.name == "rs" and node.get("q_log_floor") is not None:

@@ -76,3 +76,28 @@ def test_evaluation_policy_plays_the_average_or_on_request_the_online_weights(na
     assert plain.evaluation_policy() is plain.policy
     with pytest.raises(ValueError, match=r"needs a run trained with agent.greedy_ema_decay"):
         plain.evaluation_policy(online_weights=True)
+
+
+def test_a_tail_shortens_the_average_to_that_fraction_of_the_updates_so_far():
+    decay, tail = 0.9, 0.5
+    agent = make_agent("fcdqn", f"agent.greedy_ema_decay={decay}", f"agent.greedy_ema_tail={tail}", seed=5)
+    expected = None
+    for n in range(6):  # n earlier averages: decays min(0.9, 1 - 1/max(1, n/2)) = copy, 0, 0, 1/3, 1/2, 0.6
+        agent.update(batch(4, n))
+        online = _planner_state(agent.policy)
+        d = min(decay, 1 - 1 / max(1.0, tail * n))
+        expected = online if expected is None else {k: d * expected[k] + (1 - d) * online[k] for k in online}
+    got = _planner_state(agent.greedy_policy)
+    for key in expected:
+        torch.testing.assert_close(got[key], expected[key], rtol=1e-5, atol=1e-7, msg=key)
+    # two updates at decay 0 would have left the current weights: the tail is what made it an average
+    assert any(not torch.equal(got[k], online[k]) for k in got)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["agent.greedy_ema_tail=0.5"], r"greedy_ema_tail=0.5 needs greedy_ema_decay"),
+    (["agent.greedy_ema_decay=0.99", "agent.greedy_ema_tail=1.5"], r"greedy_ema_tail must be a number in \(0, 1\]"),
+])
+def test_a_tail_without_a_decay_or_out_of_range_is_refused(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        make_agent("ldm", *overrides)

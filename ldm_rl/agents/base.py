@@ -20,7 +20,26 @@ from ldm_rl.objectives.target_sync import TargetSync
 from ldm_rl.planning.policy import StatePolicy
 from ldm_rl.torch_utils import make_adam
 
-__all__ = ["Agent", "TargetNetworkAgent", "is_target_entry"]
+__all__ = ["Agent", "TargetNetworkAgent", "is_target_entry", "tail_ema_multi_avg_fn"]
+
+
+def tail_ema_multi_avg_fn(decay: float, tail: float):
+    """An ``AveragedModel`` ``multi_avg_fn``: an exponential moving average whose n-th update (n ≥ 1 earlier
+    averages) uses decay ``min(decay, 1 − 1/max(1, tail·n))``, i.e. it spans ≈ the last ``tail`` fraction of the
+    updates, at most ≈ ``1/(1 − decay)`` of them. ``tail`` in (0, 1]."""
+    if isinstance(tail, bool) or not isinstance(tail, (int, float)) or not 0 < tail <= 1:
+        raise ValueError(f"greedy_ema_tail must be a number in (0, 1] (a fraction of the updates), got {tail!r}")
+
+    @torch.no_grad()
+    def update(averaged: list[torch.Tensor], current: list[torch.Tensor], num_averaged: torch.Tensor) -> None:
+        d = min(decay, 1.0 - 1.0 / max(1.0, tail * float(num_averaged)))
+        if averaged[0].is_floating_point():
+            torch._foreach_lerp_(averaged, current, 1.0 - d)
+        else:  # integer buffers (BatchNorm's batch counts), as torch's own EMA treats them
+            for a, c in zip(averaged, current, strict=True):
+                a.copy_(a * d + c * (1.0 - d))
+
+    return update
 
 
 def is_target_entry(key: str) -> bool:
@@ -124,7 +143,10 @@ class TargetNetworkAgent(Agent):
     ``greedy_ema_decay``: when set (in (0, 1)), :attr:`greedy_policy` is a copy of the planner whose weights and
     BatchNorm statistics are an exponential moving average of the online ones over the updates
     (``torch.optim.swa_utils.AveragedModel``; its first update copies); training, exploration and the targets
-    are unchanged. None: the greedy policy plays the online weights."""
+    are unchanged. None: the greedy policy plays the online weights. ``greedy_ema_tail`` (in (0, 1], with a
+    decay): the average spans at most that fraction of the updates so far — the n-th average uses
+    ``min(decay, 1 − 1/max(1, tail·n))`` — so a long average (0.999: ≈ 1000 updates) does not carry the first,
+    untrained weights into the early evaluations (:func:`tail_ema_multi_avg_fn`)."""
 
     def __init__(
         self,
@@ -139,6 +161,7 @@ class TargetNetworkAgent(Agent):
         target_update_interval: int = 100,
         q_grad_clip: float | None = None,
         greedy_ema_decay: float | None = None,
+        greedy_ema_tail: float | None = None,
     ) -> None:
         super().__init__()
         if target_update_interval < 1 or lr_decay_every < 1 or not 0 < lr_decay <= 1:
@@ -159,9 +182,12 @@ class TargetNetworkAgent(Agent):
             if isinstance(greedy_ema_decay, bool) or not isinstance(greedy_ema_decay, (int, float)) \
                     or not 0 < greedy_ema_decay < 1:
                 raise ValueError(f"greedy_ema_decay must be a number in (0, 1) or None, got {greedy_ema_decay!r}")
-            self.averaged_planner = AveragedModel(planner, multi_avg_fn=get_ema_multi_avg_fn(float(greedy_ema_decay)),
-                                                  use_buffers=True)
+            average = get_ema_multi_avg_fn(float(greedy_ema_decay)) if greedy_ema_tail is None \
+                else tail_ema_multi_avg_fn(float(greedy_ema_decay), greedy_ema_tail)
+            self.averaged_planner = AveragedModel(planner, multi_avg_fn=average, use_buffers=True)
             self.averaged_planner.requires_grad_(False)
+        elif greedy_ema_tail is not None:
+            raise ValueError(f"greedy_ema_tail={greedy_ema_tail!r} needs greedy_ema_decay (the longest average)")
 
     @property
     def policy(self) -> StatePolicy:
