@@ -415,6 +415,8 @@ class AgentConfig:
                                              "plays (null = the online weights)")
     greedy_ema_tail: Optional[float] = spec(None, gt=0, le=1, doc="the average spans at most this fraction of the "
                                             "updates so far (null = the decay alone)")
+    greedy_ema_model: bool = spec(True, doc="ldm, rs: the average covers the world model too (false: the greedy "
+                                  "policy plans with the online model)")
     bootstrap_cache: int = spec(0, ge=0, doc="ldm: transitions whose bootstrap is kept until the next target copy "
                                 "(0 = off)")
     value_augmentation: Optional[str] = spec(None, choices=(None, "quarter_turns", "shifts", "symmetries"),
@@ -452,6 +454,12 @@ class AgentConfig:
         if node.get("greedy_ema_tail") is not None and node.get("greedy_ema_decay") is None:
             found.append(f"{prefix}greedy_ema_tail={_show(node.greedy_ema_tail)} is set but {prefix}greedy_ema_decay is "
                          "null: the tail shortens an average, set the decay of the longest one")
+        if not node.get("greedy_ema_model", True):
+            if node.get("greedy_ema_decay") is None:
+                found.append(f"{prefix}greedy_ema_model=false is set but {prefix}greedy_ema_decay is null: there is no "
+                             "average to leave the model out of")
+            elif node.name not in ("ldm", "rs"):
+                found.append(f"{prefix}greedy_ema_model=false is set but agent={node.name} plans with no model")
         if node.name == "rs" and node.get("q_architecture", "fcn") != "fcn":
             found.append(f"{prefix}q_architecture={node.q_architecture} is set but agent=rs builds no Q network")
         if node.name == "rs" and node.get("q_log_floor") is not None:

@@ -207,6 +207,8 @@ BAD_COMMANDS = [
     ("train_policy.py", ["agent.greedy_ema_decay=1"], "error: agent.greedy_ema_decay=1.0 is out of range: must be in (0, 1)"),
     ("train_policy.py", ["agent.greedy_ema_tail=0.5"], "error: agent.greedy_ema_tail=0.5 is set but agent.greedy_ema_decay "
      "is null: the tail shortens an average, set the decay of the longest one"),
+    ("train_policy.py", ["agent.greedy_ema_model=false"], "error: agent.greedy_ema_model=false is set but "
+     "agent.greedy_ema_decay is null: there is no average to leave the model out of"),
     ("train_dynamics.py", ["env.num_objects=0"], "error: env.num_objects=0 is out of range: must be >= 1 (objects in the scene)"),
     ("train_dynamics.py", ["dynamics.iterations=-1"], "error: dynamics.iterations=-1 is out of range: must be >= 1 (training iterations)"),
     ("generate_demos.py", ["demos.num_episodes=3"],

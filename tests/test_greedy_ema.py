@@ -101,3 +101,29 @@ def test_a_tail_shortens_the_average_to_that_fraction_of_the_updates_so_far():
 def test_a_tail_without_a_decay_or_out_of_range_is_refused(overrides, message):
     with pytest.raises(ValueError, match=message):
         make_agent("ldm", *overrides)
+
+
+@pytest.mark.parametrize("name", ["ldm", "rs"])
+def test_without_the_model_the_greedy_policy_plans_with_the_online_model_and_averaged_values(name):
+    agent = make_agent(name, "agent.greedy_ema_decay=0.5", "agent.greedy_ema_model=false", seed=4)
+    for seed in range(3):
+        agent.update(batch(4, seed))
+    online, averaged = agent.policy, agent.greedy_policy
+    assert averaged is not online
+    model_online, model_averaged = online.dynamics.state_dict(), averaged.dynamics.state_dict()
+    assert all(torch.equal(model_online[k], model_averaged[k]) for k in model_online)
+    value_online, value_averaged = _planner_state(online.value_network), _planner_state(averaged.value_network)
+    assert any(not torch.equal(value_online[k], value_averaged[k]) for k in value_online)  # V is still averaged
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["agent.greedy_ema_model=false"], r"greedy_ema_model=False needs greedy_ema_decay"),
+])
+def test_leaving_the_model_out_needs_an_average(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        make_agent("ldm", *overrides)
+
+
+def test_leaving_the_model_out_of_a_policy_without_one_is_refused():
+    with pytest.raises(ValueError, match=r"plans with no model"):
+        make_agent("fcdqn", "agent.greedy_ema_decay=0.5", "agent.greedy_ema_model=false")

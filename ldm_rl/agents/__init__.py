@@ -155,7 +155,8 @@ def _optimisation(agent_cfg: dict) -> dict:
     return {"lr": dict(agent_cfg["lr"]), "weight_decay": dict(agent_cfg.get("weight_decay") or {}),
             "lr_decay": float(agent_cfg["lr_decay"]), "lr_decay_every": int(agent_cfg["lr_decay_every"]),
             "target_update_interval": int(agent_cfg["target_update_interval"]),
-            "greedy_ema_decay": agent_cfg.get("greedy_ema_decay"), "greedy_ema_tail": agent_cfg.get("greedy_ema_tail")}
+            "greedy_ema_decay": agent_cfg.get("greedy_ema_decay"), "greedy_ema_tail": agent_cfg.get("greedy_ema_tail"),
+            "greedy_ema_model": bool(agent_cfg.get("greedy_ema_model", True))}
 
 
 def build_fcdqn_agent(cfg: Mapping[str, Any], max_height: float):
