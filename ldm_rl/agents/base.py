@@ -247,12 +247,7 @@ class TargetNetworkAgent(Agent):
             if self.averaged_planner is not None:
                 self.averaged_planner.update_parameters(self.planner)
                 if not self.greedy_ema_model:  # the greedy policy plans with the online model
-                    online = self.planner.dynamics
-                    averaged = self.averaged_planner.module.dynamics
-                    with torch.no_grad():
-                        for a, b in zip([*averaged.parameters(), *averaged.buffers()], [*online.parameters(), *online.buffers()],
-                                        strict=True):
-                            a.copy_(b)
+                    self.averaged_planner.module.dynamics.load_state_dict(self.planner.dynamics.state_dict())
             self.updates += 1
             self.planner.set_step(self.updates)
 
