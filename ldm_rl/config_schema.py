@@ -425,6 +425,8 @@ class AgentConfig:
     value_shift: Optional[int] = spec(None, ge=1, le=32, doc="ldm: largest shift of value_augmentation=shifts "
                                       "or symmetries, pixels")
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
+    termination_head: bool = spec(False, doc="ldm: V composed from a termination head, V = T·R + (1 − T)·W "
+                                  "(T fitted on the terminated flag)")
     q_proposal_fit: int = spec(0, ge=0, doc="ldm: target proposals per next state Q is also fitted on, toward "
                                "V⁻ of their prediction (0 = off)")
     # the baselines' own keys (null unless that agent is chosen; checked below)
@@ -451,6 +453,8 @@ class AgentConfig:
         for key in ("autocast", "value_augmentation", "value_shift"):
             if node.name != "ldm" and node.get(key) is not None:
                 found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
+        if node.get("termination_head") and node.name != "ldm":
+            found.append(f"{prefix}termination_head=true is set but only agent=ldm uses it (agent.name={node.name})")
         if node.get("greedy_ema_tail") is not None and node.get("greedy_ema_decay") is None:
             found.append(f"{prefix}greedy_ema_tail={_show(node.greedy_ema_tail)} is set but {prefix}greedy_ema_decay is "
                          "null: the tail shortens an average, set the decay of the longest one")

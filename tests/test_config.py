@@ -228,6 +228,8 @@ BAD_COMMANDS = [
     ("train_policy.py", ["agent=rs", "agent.q_log_floor=0.01"],
      "error: agent.q_log_floor=0.01 is set but agent=rs builds no Q network"),
     ("train_policy.py", ["agent.value_augmentation=flips"], "agent.value_augmentation='flips' is invalid: must be one of"),
+    ("train_policy.py", ["agent=dynaq", "agent.termination_head=true"],
+     "error: agent.termination_head=true is set but only agent=ldm uses it (agent.name=dynaq)"),
     ("train_policy.py", ["agent=fcdqn", "agent.value_shift=2"],
      "error: agent.value_shift=2 is set but only agent=ldm uses it (agent.name=fcdqn)"),
     ("train_policy.py", ["agent.value_shift=0"], "error: agent.value_shift=0 is out of range"),

@@ -294,6 +294,29 @@ def test_v_value_and_reward_heads_share_the_trunk_and_batch_any_way():
     assert all(p.grad is not None for p in v.parameters())
 
 
+def test_a_termination_head_composes_v_from_the_reward_where_the_episode_ends():
+    torch.manual_seed(3)
+    v = build_value_network("lite", max_height=MAX_HEIGHT, width=TINY, termination_head=True)
+    plain = tiny_v()
+    assert sum(p.numel() for p in v.parameters()) > sum(p.numel() for p in plain.parameters())
+    scene, in_hand, _ = states(5, seed=2)
+    with torch.no_grad():
+        going_on, reward, logit = v.heads(scene, in_hand)
+        value = v(scene, in_hand)
+        value2, reward2 = v.value_and_reward(scene, in_hand)
+        # a sure end is worth the reward received, a sure continuation the value of going on
+        for bias, expected in ((40.0, reward), (-40.0, going_on)):
+            v.termination_head[-1].bias.fill_(bias)
+            torch.testing.assert_close(v(scene, in_hand), expected)
+    t = torch.sigmoid(logit)
+    torch.testing.assert_close(value, t * reward + (1 - t) * going_on)
+    assert torch.equal(value, value2) and torch.equal(reward, reward2)
+    assert not torch.allclose(value, going_on)  # the composition is not the value head alone
+    assert len(plain.heads(scene, in_hand)) == 2 and plain.termination_head is None
+    with pytest.raises(ValueError, match="termination_head must be a bool, got 'yes'"):
+        VCNN(MAX_HEIGHT, termination_head="yes")
+
+
 # --------------------------------------------------------------------------------------------
 # input validation
 # --------------------------------------------------------------------------------------------

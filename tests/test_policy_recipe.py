@@ -13,7 +13,8 @@ from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
-SMOKE = ("experiment=smoke", "agent.return_lower_bound=true", "agent.greedy_ema_decay=0.9")
+SMOKE = ("experiment=smoke", "agent.return_lower_bound=true", "agent.greedy_ema_decay=0.9",
+         "agent.termination_head=true")
 
 
 def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:
@@ -25,7 +26,8 @@ def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("train_policy")
     # with the return bound on (the stacking_lite choice), so the replay's return column runs end to end, and the
-    # greedy policy's averaged weights, so the checkpoints, the resume and evaluate.py carry them
+    # greedy policy's averaged weights and V's termination head, so the checkpoints, the resume and evaluate.py
+    # carry them
     proc = run("train_policy.py", *SMOKE, f"hydra.run.dir={out}", cwd=out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, proc
@@ -51,7 +53,9 @@ def test_smoke_run_writes_curve_checkpoint_and_metrics(smoke_run):
     assert final["best"]["eval_episodes"] == 2 and (out / "best_policy.pt").exists()
     from ldm_rl.run.checkpoint import load_checkpoint
 
-    assert "averaged_planner.n_averaged" in load_checkpoint(out / "best_policy.pt").state["agent"]
+    state = load_checkpoint(out / "best_policy.pt").state["agent"]
+    assert "averaged_planner.n_averaged" in state
+    assert any("value_network.termination_head" in key for key in state)  # V's third head travels with the weights
 
 
 @pytest.mark.slow

@@ -8,7 +8,8 @@ from torchrl.objectives import HardUpdate
 
 from ldm_rl import geometry
 from ldm_rl.objectives import LookaheadLoss, draw_value_augmentation
-from policy_helpers import tiny_networks, transitions
+from ldm_rl.models.v_cnn import build_value_network
+from policy_helpers import MAX_HEIGHT, tiny_networks, transitions
 
 # these tests build the loss alone; the agents pair it with TargetSync (tests/test_target_sync.py)
 pytestmark = pytest.mark.filterwarnings("ignore:No target network updater has been associated:UserWarning")
@@ -317,3 +318,34 @@ def test_symmetry_augmentation_turns_mirrors_and_shifts_each_next_state():
         found.append(matches[0])
     assert {m[1] for m in found} == {False, True}
     assert len({m[0] for m in found}) >= 3 and len({m[2:] for m in found}) >= 4
+
+
+def test_a_termination_head_is_fitted_on_the_terminated_flag_and_v_only_trains_the_value_head():
+    q, dynamics, _ = tiny_networks(0)
+    torch.manual_seed(5)
+    value = build_value_network("lite", max_height=MAX_HEIGHT, width=0.125, termination_head=True)
+    loss = LookaheadLoss(q, dynamics, value, gamma=0.9, num_target_candidates=3, chunk_size=5)
+    plain = make_loss()
+    assert loss.termination and not plain.termination
+    assert "loss_termination" in loss.out_keys and "loss_termination" not in plain.out_keys
+    terminated = torch.tensor([[True], [False], [True], [False]])
+    batch = transitions(4, terminated=terminated)
+    out = loss(batch)
+    assert set(out.keys()) == set(loss.out_keys)
+    # the termination loss: binary cross-entropy of T's logit toward the flag, on real and predicted next states
+    with torch.no_grad():
+        logit = value.heads(batch["next", "heightmap"], batch["next", "in_hand"])[2]
+    bce_real = torch.nn.functional.binary_cross_entropy_with_logits(logit, terminated.float())
+    assert out["loss_termination"] > bce_real  # the predicted states' term comes on top
+    loss_no_pred = LookaheadLoss(q, dynamics, value, gamma=0.9, num_target_candidates=3, chunk_size=5,
+                                 value_on_prediction=False)
+    torch.testing.assert_close(loss_no_pred(transitions(4, terminated=terminated))["loss_termination"], bce_real)
+    # V's loss reaches the value head only; the termination loss reaches the termination head
+    out["loss_value"].backward(retain_graph=True)
+    assert all(p.grad is None for p in loss.value_network.termination_head.parameters())
+    assert all(p.grad is None for p in loss.value_network.reward_head.parameters())
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.value_network.value_head.parameters())
+    loss.value_network.zero_grad(set_to_none=True)
+    out["loss_termination"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.value_network.termination_head.parameters())
+    assert all(p.grad is None for p in loss.value_network.value_head.parameters())

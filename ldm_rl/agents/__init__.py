@@ -91,7 +91,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"),
                                 frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
                                 architecture=str(agent_cfg.get("q_architecture") or "fcn"), **common)
-    value_network = build_value_network(preset, width=agent_cfg.get("value_width"), **common)
+    value_network = build_value_network(preset, width=agent_cfg.get("value_width"),
+                                        termination_head=bool(agent_cfg.get("termination_head", False)), **common)
     planner = _ldm_planner(cfg["planner"], q_network, dynamics, value_network, gamma=float(agent_cfg["gamma"]))
     loss = LookaheadLoss(
         q_network, dynamics, value_network,

@@ -55,7 +55,8 @@ class LDMAgent(TargetNetworkAgent):
         with torch.autocast(device, dtype=torch.bfloat16, enabled=self.autocast == "bf16"):
             dyn = self.dynamics_loss(batch)
             out = self.loss(batch)
-        self._step(dyn["loss_dynamics"] + out["loss_q"] + out["loss_value"] + out["loss_reward"])
+        total = dyn["loss_dynamics"] + out["loss_q"] + out["loss_value"] + out["loss_reward"]
+        self._step(total + out["loss_termination"] if "loss_termination" in out.keys() else total)
         metrics = {key: float(value.detach()) for key, value in out.items()}
         metrics.update(loss_dynamics=float(dyn["loss_dynamics"].detach()), pixel_accuracy=float(dyn["pixel_accuracy"]))
         if self.loss.bootstrap_cache is not None:

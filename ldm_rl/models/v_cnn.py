@@ -9,6 +9,14 @@ conv weight, PyTorch defaults for conv biases and linear layers):
 * ``cat`` → 384×8×8, then two separate, identical heads (``value`` and ``reward``): 3×3 conv stride 2
   384→256 (bias) → LReLU → flatten 4096 → 2048 → 1028 → 256 → 1 (LReLU between, no output activation).
 
+Option ``termination_head`` (not in the reference): a third identical head gives the logit of ``T(s)``, the
+probability that the episode ends on arriving in ``s``, and V is composed as
+``V(s) = T(s)·R(s) + (1 − T(s))·W(s)``, ``R`` the reward head and ``W`` the value head (the value of going on):
+a state the model predicts terminal is worth the reward received there, whatever ``W`` says. A model-based
+agent's planner scores predicted states, and a terminal one it cannot recognise (a roof tipped over, a bottle
+fallen) is scored as if the episode went on; the termination model is what world-model agents learn beside the
+reward for that reason (Dreamer's continue predictor). :meth:`heads` gives ``(W, R, T logit)`` for fitting.
+
 Parameters: 24,801,418 at ``width=1`` (scene 1,213,760; hand 296,256; each head 11,645,701), exactly the
 reference's. Inputs are heights in metres, encoded as ``heights_to_classes(h) / (K − 1)``
 (:func:`blocks.encode_heights`). On CPU without gradients, large batches run in chunks of ``CHUNK`` states
@@ -44,11 +52,13 @@ class VCNN(nn.Module):
         max_height: metres mapped to the top depth class (per task).
         num_classes: K depth classes of the input quantisation.
         width: channel multiplier (1.0 = the reference).
+        termination_head: add the termination head and compose V from it (see the module docstring).
     """
 
     CHUNK = 16  # states per pass without gradients (measured: 64 a pass is ~2x slower per state)
 
-    def __init__(self, max_height: float, num_classes: int = 21, width: float = 1.0) -> None:
+    def __init__(self, max_height: float, num_classes: int = 21, width: float = 1.0,
+                 termination_head: bool = False) -> None:
         super().__init__()
         encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
         if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
@@ -62,6 +72,9 @@ class VCNN(nn.Module):
         self.hand_trunk = _stages([1, ch(32), ch(64), ch(128)])
         self.value_head = self._head(ch(256) + ch(128), ch)
         self.reward_head = self._head(ch(256) + ch(128), ch)
+        if not isinstance(termination_head, bool):
+            raise ValueError(f"termination_head must be a bool, got {termination_head!r}")
+        self.termination_head = self._head(ch(256) + ch(128), ch) if termination_head else None
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, a=LEAKY_SLOPE, mode="fan_out", nonlinearity="leaky_relu")
@@ -103,18 +116,35 @@ class VCNN(nn.Module):
                 out.append(head(feat))
         return [(o[0] if len(o) == 1 else torch.cat(o)).reshape(*batch, 1) if o else scene.new_zeros(*batch, 1) for o in outs]
 
+    @staticmethod
+    def compose(going_on: torch.Tensor, reward: torch.Tensor, termination_logit: torch.Tensor) -> torch.Tensor:
+        """``V = T·R + (1 − T)·W`` with ``T = sigmoid(termination_logit)``; all ``[*B, 1]``."""
+        ends = torch.sigmoid(termination_logit)
+        return ends * reward + (1.0 - ends) * going_on
+
+    def heads(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The raw heads in one trunk pass: ``(value head, reward head)``, and with ``termination_head`` the
+        termination logit third; each ``[*B, 1]``. The value head is V itself without the termination head, the
+        value of going on ``W`` with it."""
+        heads = (self.value_head, self.reward_head)
+        return tuple(self._run(heightmap, in_hand, heads if self.termination_head is None
+                               else heads + (self.termination_head,)))
+
     def forward(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> torch.Tensor:
         """``heightmap [*B, 1, 128, 128]``, ``in_hand [*B, 1, 24, 24]`` float metres -> V ``[*B, 1]`` float32."""
-        return self._run(heightmap, in_hand, (self.value_head,))[0]
+        if self.termination_head is None:
+            return self._run(heightmap, in_hand, (self.value_head,))[0]
+        return self.compose(*self.heads(heightmap, in_hand))
 
     def value_and_reward(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """As :meth:`forward`, -> (V ``[*B, 1]``, reward of being in the state ``[*B, 1]``); one shared trunk pass."""
-        value, reward = self._run(heightmap, in_hand, (self.value_head, self.reward_head))
-        return value, reward
+        out = self.heads(heightmap, in_hand)
+        return (out[0] if self.termination_head is None else self.compose(*out)), out[1]
 
 
-def build_value_network(preset: str, *, max_height: float, num_classes: int = 21, width: float | None = None) -> VCNN:
+def build_value_network(preset: str, *, max_height: float, num_classes: int = 21, width: float | None = None,
+                        termination_head: bool = False) -> VCNN:
     """A :class:`VCNN` at a preset width (``V_PRESETS``); ``width`` overrides the preset's."""
     if preset not in V_PRESETS:
         raise ValueError(f"unknown value network preset {preset!r}; expected one of {sorted(V_PRESETS)}")
-    return VCNN(max_height, num_classes, V_PRESETS[preset] if width is None else width)
+    return VCNN(max_height, num_classes, V_PRESETS[preset] if width is None else width, termination_head)

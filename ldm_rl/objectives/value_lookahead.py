@@ -9,7 +9,10 @@ includes the reward received on *arriving* in ``s``, so for a transition ``(s, a
 * ``y_Q = r + γ·(1 − terminated)·max_{a'} Q⁻(s', a')`` is the target of ``Q(s, a)`` (plain DQN max;
   option ``q_target="lookahead"``: ``y_Q = y_V``, the same return estimated through the lookahead, so Q
   learns to propose what V ranks first and avoids a max over R·H·W noisy entries);
-* the reward head learns ``R(s') ≈ r`` on the same states (Random Shooting and Dyna-Q use it).
+* the reward head learns ``R(s') ≈ r`` on the same states (Random Shooting and Dyna-Q use it);
+* with V's termination head (``VCNN(termination_head=True)``, not in the paper), ``T(s')`` learns the
+  ``terminated`` flag on the same states (binary cross-entropy, ``loss_termination``), and V's Huber trains only
+  the value head ``W`` of ``V = T·R + (1 − T)·W``: every V above (targets, planner) is the composed one.
 
 ``Ā_N(s')`` are N proposals drawn from the target Q map by
 :func:`~ldm_rl.planning.sampling.sample_candidates` (argmax with inhibition by default: deterministic
@@ -218,8 +221,15 @@ class LookaheadLoss(TransitionLoss):
                                               num_classes=dynamics.num_classes) if bootstrap_cache else None
 
     @property
+    def termination(self) -> bool:
+        """Whether V has a termination head (:class:`~ldm_rl.models.v_cnn.VCNN`'s ``termination_head``): then
+        the loss also fits it, ``loss_termination``, binary cross-entropy toward ``terminated``."""
+        return getattr(self.value_network, "termination_head", None) is not None
+
+    @property
     def out_keys(self) -> list[str]:
-        return ["loss_q", "loss_value", "loss_reward", "q_target", "value_target", "state_value", "td_error"]
+        return ["loss_q", "loss_value", "loss_reward", *(["loss_termination"] if self.termination else []),
+                "q_target", "value_target", "state_value", "td_error"]
 
     @contextlib.contextmanager
     def target_networks(self):
@@ -374,29 +384,35 @@ class LookaheadLoss(TransitionLoss):
         next_heightmap = tensordict.get((keys.NEXT, k.heightmap))
         next_in_hand = tensordict.get((keys.NEXT, k.in_hand))
         reward = tensordict.get(k.reward).reshape(-1, 1).float()
+        terminated = tensordict.get(k.terminated).reshape(-1, 1).float()
         augmented = self._draw_augmentation(next_heightmap.shape[0], next_heightmap.device)
-        v_real, r_real = self.value_network.value_and_reward(augmented(next_heightmap), next_in_hand)
+
+        def fitted(heightmap):
+            """(V, R, termination loss or None) of next states ``heightmap`` [B, 1, H, W]. With a termination
+            head, V's Huber trains the value head alone: T and R enter V detached, each fitted on its own label."""
+            if not self.termination:
+                return (*self.value_network.value_and_reward(heightmap, next_in_hand), None)
+            going_on, r, logit = self.value_network.heads(heightmap, next_in_hand)
+            bce = F.binary_cross_entropy_with_logits(logit.float(), terminated, reduction="none")
+            return self.value_network.compose(going_on, r.detach(), logit.detach()), r, (bce * weight).mean()
+
+        v_real, r_real, loss_termination = fitted(augmented(next_heightmap))
         loss_value, loss_reward = huber(v_real, v_target), huber(r_real, reward)
         if self.value_on_prediction:
             predicted = predicted_next_state(self.dynamics, tensordict, logits_key=k.next_logits,
                                              state_keys=(k.heightmap, k.in_hand, k.holding, k.action))
-            v_pred, r_pred = self.value_network.value_and_reward(augmented(predicted.heightmap), next_in_hand)
+            v_pred, r_pred, bce_pred = fitted(augmented(predicted.heightmap))
             loss_value = loss_value + huber(v_pred, v_target)
             loss_reward = loss_reward + huber(r_pred, reward)
+            loss_termination = None if bce_pred is None else loss_termination + bce_pred
         td_error = (v_real.detach() - v_target).abs().reshape(-1)
         tensordict.set(k.priority, td_error)
         loss_q = huber(q_pred, self.q_scale.encode(q_target))
         if fit is not None:
             loss_q = loss_q + self._proposal_fit_loss(tensordict, weight, *fit)
-        return TensorDict(
-            {
-                "loss_q": loss_q,
-                "loss_value": loss_value,
-                "loss_reward": loss_reward,
-                "q_target": q_target.mean(),
-                "value_target": v_target.mean(),
-                "state_value": v_real.detach().mean(),
-                "td_error": td_error.mean(),
-            },
-            batch_size=[],
-        )
+        out = {"loss_q": loss_q, "loss_value": loss_value, "loss_reward": loss_reward}
+        if loss_termination is not None:
+            out["loss_termination"] = loss_termination
+        out.update(q_target=q_target.mean(), value_target=v_target.mean(), state_value=v_real.detach().mean(),
+                   td_error=td_error.mean())
+        return TensorDict(out, batch_size=[])
