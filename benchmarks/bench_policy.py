@@ -6,6 +6,7 @@ and lite presets.
     python benchmarks/bench_policy.py                            # decision/update: both presets, 1 and 2 threads
     python benchmarks/bench_policy.py --presets lite --threads 1 --repeats 5
     python benchmarks/bench_policy.py --planners --presets lite        # one decision per planner option, 1 thread
+    python benchmarks/bench_policy.py --device cuda --presets paper lite --threads 1   # decision/update on a GPU
 
 A training env step (``--training-step``) is what ``recipes/train_policy.py`` does per step: the exploring
 planner's decision on the real PyBullet env, the env step, and ``schedule.updates_per_step`` agent updates
@@ -22,6 +23,13 @@ then the best and median of ``--repeats``. The reference's figures are printed b
 documented for this kind of 2-core CPU (its planning call 0.73 s; one training step ≈ 60 s with its
 per-sample target planning; float64 scenes ≈ 136 KB per transition) — they come from another run, so
 compare orders of magnitude, not percent.
+
+``--device`` (``cpu``, the default, or ``cuda``) puts the networks, their losses' target copies and
+optimiser states, the update's batch and the decision's state on that device (the replay-bytes rows stay
+on the CPU, where ``FrameReplay`` keeps its frames); each timed call, the warm-up one too, is bracketed by
+``torch.cuda.synchronize()``, so a figure is the call's wall time with its kernels finished. Autocast
+(``--autocast bf16``) follows the device. ``--threads`` still sets torch's CPU threads (on CUDA they only
+drive the launches). ``--training-step`` runs the PyBullet env on the CPU and refuses ``--device cuda``.
 """
 
 from __future__ import annotations
@@ -72,30 +80,35 @@ def transitions(n: int) -> TensorDict:
                        "next": {**scenes(n, 2), "reward": torch.zeros(n, 1), "terminated": terminated}}, batch_size=[n])
 
 
-def build(preset: str, num_candidates: int, num_target_candidates: int, autocast: str | None = None):
+def build(preset: str, num_candidates: int, num_target_candidates: int, autocast: str | None = None,
+          device: torch.device | str = "cpu"):
     torch.manual_seed(0)
     width = 1.0 if preset == "paper" else 0.25
-    dynamics = build_dynamics_model({"name": "ldm", "preset": preset, "width": width, "crop_size": 64}, MAX_HEIGHT)
-    q = build_q_network(preset, max_height=MAX_HEIGHT)
-    value = build_value_network(preset, max_height=MAX_HEIGHT)
+    dynamics = build_dynamics_model({"name": "ldm", "preset": preset, "width": width, "crop_size": 64},
+                                    MAX_HEIGHT).to(device)
+    q = build_q_network(preset, max_height=MAX_HEIGHT).to(device)
+    value = build_value_network(preset, max_height=MAX_HEIGHT).to(device)
     planner = LookaheadPlanner(q, dynamics, value, num_candidates=num_candidates, tau=0.05, write_action_value=False,
                                autocast=autocast)
-    loss = LookaheadLoss(q, dynamics, value, num_target_candidates=num_target_candidates)
-    ldm_loss = LDMLoss(dynamics, write_logits=True)
+    loss = LookaheadLoss(q, dynamics, value, num_target_candidates=num_target_candidates).to(device)
+    ldm_loss = LDMLoss(dynamics, write_logits=True).to(device)  # its class-count buffer
     optims = [make_adam(m.parameters(), lr=1e-4) for m in (q, value, dynamics)]  # as the agent
     return planner, loss, ldm_loss, optims
 
 
-def timed(fn, repeats: int) -> tuple[float, float, float]:
-    """(first call, best, median) seconds."""
-    t = time.perf_counter()
-    fn()
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeats):
+def timed(fn, repeats: int, device: torch.device | str = "cpu") -> tuple[float, float, float]:
+    """(first call, best, median) seconds; on CUDA each call is bracketed by ``torch.cuda.synchronize``."""
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+
+    def once() -> float:
+        sync()
         t = time.perf_counter()
         fn()
-        times.append(time.perf_counter() - t)
+        sync()
+        return time.perf_counter() - t
+
+    first = once()
+    times = [once() for _ in range(repeats)]
     return first, min(times), statistics.median(times)
 
 
@@ -238,14 +251,14 @@ PLANNER_OPTIONS = (  # (label, planner class, keyword arguments beside the share
 )
 
 
-def planner_table(presets: list[str], candidates: int, repeats: int) -> None:
+def planner_table(presets: list[str], candidates: int, repeats: int, device: torch.device | str = "cpu") -> None:
     """One greedy decision for one state per planner option (one thread), its cost against the paper's."""
     torch.set_num_threads(1)
-    state = TensorDict(scenes(1), batch_size=[1])
+    state = TensorDict(scenes(1), batch_size=[1]).to(device)
     print("\n| preset | planner | first (warm-up) | best | median | × one-step |")
     print("|---|---|---|---|---|---|")
     for preset in presets:
-        planner, *_ = build(preset, candidates, candidates)
+        planner, *_ = build(preset, candidates, candidates, device=device)
         nets = (planner.q_network, planner.dynamics, planner.value_network)
         base = None
         for label, cls, kwargs in PLANNER_OPTIONS:
@@ -255,7 +268,7 @@ def planner_table(presets: list[str], candidates: int, repeats: int) -> None:
                 with set_exploration_type(ExplorationType.DETERMINISTIC):
                     option(state.clone())
 
-            first, best, median = timed(decide, repeats)
+            first, best, median = timed(decide, repeats, device)
             base = median if base is None else base
             print(f"| {preset} | {label} (N = {candidates}) | {first:.3f} s | {best:.3f} s | {median:.3f} s | "
                   f"{median / base:.1f} |", flush=True)
@@ -278,7 +291,21 @@ def main() -> None:
     parser.add_argument("--target-candidates", type=int, nargs="+", default=[10])
     parser.add_argument("--autocast", nargs="+", default=["none"], choices=["none", "bf16"],
                         help="planner.autocast / agent.autocast settings to time (bf16: Q and LDM under bf16 autocast)")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                        help="where the networks, batch and state live (cuda: timings synchronize the GPU)")
     args = parser.parse_args()
+    if args.device == "cuda":
+        if args.training_step:
+            parser.error("--training-step runs the PyBullet env on the CPU; it does not take --device cuda")
+        if not torch.cuda.is_available():
+            parser.error("--device cuda: torch.cuda.is_available() is False")
+    device = torch.device(args.device)
+
+    def fmt(seconds: float, width: int = 0) -> str:  # GPU calls take milliseconds: print those
+        return f"{seconds * 1e3:{width}.1f} ms" if device.type == "cuda" else f"{seconds:{width}.2f} s"
+
+    where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"torch threads {torch.get_num_threads()}"
+    print(f"device: {args.device} ({where}), torch {torch.__version__}", flush=True)
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO line (a buffer's storage initialised) is noise here
     # the phase timers wrap each optimiser's step, which torch's LR scheduler reports as an override
     warnings.filterwarnings("ignore", message="Seems like `optimizer.step\\(\\)` has been overridden", category=UserWarning)
@@ -286,17 +313,17 @@ def main() -> None:
         training_step_table(args.levers, args.steps, args.warmup)
         return
     if args.planners:
-        planner_table(args.presets, args.candidates, args.repeats)
+        planner_table(args.presets, args.candidates, args.repeats, device)
         return
 
     rows = []
-    state = TensorDict(scenes(1), batch_size=[1])
+    state = TensorDict(scenes(1), batch_size=[1]).to(device)
     for preset, n_t, precision in itertools.product(args.presets, args.target_candidates, args.autocast):
         autocast = None if precision == "none" else precision
-        planner, loss, ldm_loss, optims = build(preset, args.candidates, n_t, autocast)
+        planner, loss, ldm_loss, optims = build(preset, args.candidates, n_t, autocast, device)
         params = {name: count_parameters(m) for name, m in
                   (("Q", planner.q_network), ("V", planner.value_network), ("LDM", planner.dynamics))}
-        batch = transitions(args.batch)
+        batch = transitions(args.batch).to(device)
 
         def decide():
             with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -306,7 +333,7 @@ def main() -> None:
             td = batch.clone()
             for m in (planner.q_network, planner.value_network, planner.dynamics):
                 m.train()
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast is not None):
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast is not None):
                 out = ldm_loss(td)
                 lk = loss(td)
             total = out["loss_dynamics"] + lk["loss_q"] + lk["loss_value"] + lk["loss_reward"]
@@ -317,7 +344,7 @@ def main() -> None:
                 opt.step()
 
         def targets():
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast is not None):
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast is not None):
                 loss.targets(batch)
 
         for threads in args.threads:
@@ -325,11 +352,11 @@ def main() -> None:
             for what, fn in (("decision (N=%d)" % args.candidates, decide),
                              (f"targets only (B={args.batch}, N_t={n_t})", targets),
                              (f"update incl. targets (B={args.batch}, N_t={n_t})", update)):
-                first, best, median = timed(fn, args.repeats)
+                first, best, median = timed(fn, args.repeats, device)
                 what = what if autocast is None else f"{what}, {autocast}"
                 rows.append((preset, threads, what, first, best, median))
-                print(f"{preset:5s} {threads}t {what:44s} first {first:6.2f} s  best {best:6.2f} s  median {median:6.2f} s",
-                      flush=True)
+                print(f"{preset:5s} {device.type:4s} {threads}t {what:44s} first {fmt(first, 6)}  best {fmt(best, 6)}  "
+                      f"median {fmt(median, 6)}", flush=True)
         print(f"{preset}: params " + ", ".join(f"{k} {v / 1e6:.2f} M" for k, v in params.items()), flush=True)
 
     replay = FrameReplay(1000, max_height=MAX_HEIGHT, batch_size=32)
@@ -345,14 +372,14 @@ def main() -> None:
         rows.append(("-", "-", f"replay bytes/transition ({length}-step episodes)", fresh.bytes_per_transition(), 0, 0))
     del replay
 
-    print("\n| preset | threads | what | first (warm-up) | best | median | reference |")
+    print(f"\n| preset ({args.device}) | threads | what | first (warm-up) | best | median | reference |")
     print("|---|---|---|---|---|---|---|")
     for preset, threads, what, first, best, median in rows:
         if what.startswith("replay"):
             print(f"| – | – | {what} | {first / 1000:.1f} KB | | | {REFERENCE['bytes']} |")
             continue
         ref = REFERENCE["decision"] if what.startswith("decision") else REFERENCE["update"] if what.startswith("update") else ""
-        print(f"| {preset} | {threads} | {what} | {first:.2f} s | {best:.2f} s | {median:.2f} s | {ref} |")
+        print(f"| {preset} | {threads} | {what} | {fmt(first)} | {fmt(best)} | {fmt(median)} | {ref} |")
 
 
 if __name__ == "__main__":
