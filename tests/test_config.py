@@ -495,7 +495,7 @@ def _differences(a, b, prefix=""):
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.lr.value", "agent.value_augmentation"}),
-    ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes"}),
+    ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
 ])
@@ -514,7 +514,7 @@ def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, t
 @pytest.mark.parametrize("agent, fit, floor", [("ldm", 3, 0.01), ("fcdqn", 0, 0.01), ("dynaq", 0, 0.01), ("rs", 0, None)])
 def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floor):
     """conf/experiment_agent/<experiment>_<agent>.yaml: bin packing's Q scale for every agent with a Q network,
-    the proposal fit and the house's V augmentation for the ldm agent only (each refused for the others), and the
+    the proposal fit and the house's and bottles' V augmentation for the ldm agent only (each refused for the others), and the
     command line still wins."""
     cfg = make_cfg("experiment=curves_bin_packing", f"agent={agent}", config_name="train_policy")
     assert cfg.agent.get("q_proposal_fit") == fit and cfg.agent.get("q_log_floor") == floor
@@ -523,6 +523,9 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert mine.agent.get("q_log_floor") is None
     house = make_cfg("experiment=curves_house_building", f"agent={agent}", config_name="train_policy")
     assert house.agent.get("q_log_floor") is None
-    # the house's V augmentation reaches the ldm agent only (the others refuse the key)
+    # the house's and the bottles' V augmentation reaches the ldm agent only (the others refuse the key)
     assert house.agent.get("value_augmentation") == ("shifts" if agent == "ldm" else None)
     config_schema.validate_config(house, config_schema.TrainPolicyConfig)
+    bottles = make_cfg("experiment=curves_bottle_arrangement", f"agent={agent}", config_name="train_policy")
+    assert bottles.agent.get("value_augmentation") == ("shifts" if agent == "ldm" else None)
+    config_schema.validate_config(bottles, config_schema.TrainPolicyConfig)
