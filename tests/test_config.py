@@ -494,7 +494,7 @@ def _differences(a, b, prefix=""):
     ("table2_block_stacking", {"env.train_object_counts"}),
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
-    ("curves_house_building", {"agent.lr.value", "agent.value_augmentation"}),
+    ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
     ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
@@ -523,6 +523,7 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert mine.agent.get("q_log_floor") is None
     house = make_cfg("experiment=curves_house_building", f"agent={agent}", config_name="train_policy")
     assert house.agent.get("q_log_floor") is None
+    assert house.agent.gamma == 0.8  # the house's discount is the task's, every agent's (curves_house_building.yaml)
     # the house's and the bottles' V augmentation reaches the ldm agent only (the others refuse the key)
     assert house.agent.get("value_augmentation") == ("shifts" if agent == "ldm" else None)
     config_schema.validate_config(house, config_schema.TrainPolicyConfig)
