@@ -300,6 +300,14 @@ def test_only_keeps_the_named_lines_and_refuses_a_name_that_is_no_line(tmp_path,
     with pytest.raises(SystemExit) as stop:
         plot_learning_curves.main([str(tmp_path), "--out", str(tmp_path / "c.png"), "--only", "LDM [nwe]"])
     assert stop.value.code == 2 and "--only 'LDM [nwe]': no such line" in capsys.readouterr().err
+    keep("curves_house_building_ldm_seed0_new", "ldm", "ldm_rl/HouseBuilding-v0", 0)
+    rows = plot_learning_curves.main([str(tmp_path), "--out", str(tmp_path / "c.png"),
+                                      "--only", "Block stacking: LDM [old]", "House building: LDM [new]"])
+    assert {(r["task"], r["label"]) for r in rows} == {("ldm_rl/BlockStacking-v0", "LDM [old]"),
+                                                       ("ldm_rl/HouseBuilding-v0", "LDM [new]")}
+    with pytest.raises(SystemExit) as stop:  # a line qualified by a task that does not have it
+        plot_learning_curves.main([str(tmp_path), "--out", str(tmp_path / "c.png"), "--only", "Bin packing: LDM [old]"])
+    assert stop.value.code == 2 and "--only 'Bin packing: LDM [old]': no such line" in capsys.readouterr().err
 
 
 def test_a_results_folder_names_its_lines_by_tag_and_reads_the_final_weights(tmp_path):

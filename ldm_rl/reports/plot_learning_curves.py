@@ -16,8 +16,9 @@ Writes the figure (PNG) and a CSV of the plotted points (task, objects, agent, l
 n_seeds); default ``<first folder>/learning_curves.png`` and ``.csv``; ``--table T.md`` also writes the
 comparison table (one row per line: seeds, episodes to a mean success of 0.5 and 0.8, the final weights'
 success on 100 held-out episodes, the paper's end value). ``--only LABEL ...`` keeps only the lines of those
-labels (as the legend names them, e.g. ``"LDM [mix23ema]"``), in every panel that has them: a headline figure
-of the current presets drawn from a results folder that also keeps their history.
+labels (as the legend names them, e.g. ``"LDM [mix23ema]"``), in every panel that has them, or, prefixed by a task's
+name, in that task's panels only (``"House building: LDM [gamma08]"``): a headline figure of the current presets
+drawn from a results folder that also keeps their history.
 
 A folder may also be a results folder (``docs/results/policy``): the finished runs kept there as
 ``curves_<task>_<agent>_seed<k>[_<tag>]_curve.csv`` beside their ``_final_metrics.json`` (which names the task,
@@ -214,14 +215,20 @@ def group(runs: list[Run]) -> dict[tuple[str, int], dict[str, list[Run]]]:
 
 
 def select(panels: dict, only: list[str]) -> dict:
-    """``panels`` with only the lines labelled in ``only`` (panels left without a line are dropped); a label that
-    names no line is an error, so a typo does not drop a line silently."""
-    known = {label for lines in panels.values() for label in lines}
+    """``panels`` with only the lines labelled in ``only`` (panels left without a line are dropped). A label keeps
+    its line in every panel; ``"<task name>: <label>"`` (``"House building: LDM [gamma08]"``) only in that task's
+    panels. A label that names no line is an error, so a typo does not drop a line silently."""
+    def wanted(key, label: str) -> bool:
+        return label in only or f"{TASKS.get(key[0], (key[0],))[0]}: {label}" in only
+
+    known = {name for key, lines in panels.items() for label in lines
+             for name in (label, f"{TASKS.get(key[0], (key[0],))[0]}: {label}")}
     unknown = [label for label in only if label not in known]
     if unknown:
         raise ValueError(f"--only {', '.join(repr(u) for u in unknown)}: no such line; the lines are "
-                         f"{', '.join(sorted(known))}")
-    kept = {key: {label: runs for label, runs in lines.items() if label in only} for key, lines in panels.items()}
+                         f"{', '.join(sorted({label for lines in panels.values() for label in lines}))} "
+                         "(each may be prefixed by its task's name and a colon, e.g. 'House building: ')")
+    kept = {key: {label: runs for label, runs in lines.items() if wanted(key, label)} for key, lines in panels.items()}
     return {key: lines for key, lines in kept.items() if lines}
 
 
@@ -324,7 +331,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help="figure path (.png; the CSV goes beside it, .csv); default <first folder>/learning_curves.png")
     parser.add_argument("--table", type=Path, default=None, help="also write the comparison table (markdown) here (.md)")
     parser.add_argument("--only", nargs="+", default=None, metavar="LABEL",
-                        help='draw and tabulate only the lines of these labels, e.g. "LDM [mix23ema]" "FC-DQN [ema]"')
+                        help='draw and tabulate only the lines of these labels, e.g. "LDM [mix23ema]" "FC-DQN [ema]"; '
+                             '"House building: LDM [gamma08]" keeps a line in that task only')
     args = parser.parse_args(argv)
     if args.out is not None and args.out.suffix.lower() != ".png":
         parser.error(f"--out {args.out}: expected a .png path")
