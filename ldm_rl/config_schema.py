@@ -163,6 +163,9 @@ class EnvConfig:
                                    "never proposed again (0 = off; ldm_rl.envs.memory)")
     train_object_counts: Optional[List[int]] = spec(
         None, doc="object counts drawn per training episode and expert demo (null = num_objects); evaluation uses num_objects")
+    finger_spinning_friction: float = spec(
+        0.0, ge=0, doc="torsional friction of the gripper's finger pads (conf/env: 0.1, the anchor's; the default 0 is the "
+        "physics of runs before 2026-11-27, whose stored configs lack the key)")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
@@ -817,19 +820,27 @@ def config_differences(run: Mapping[str, Any], given: Mapping[str, Any], ignore:
     command gives the schema's default: a key added after the run was written, whose default keeps the
     behaviour the run had (e.g. ``planner.name: diverse``)."""
     return [f"{key}: the run has {_show(a)}, the command gives {_show(b)}"
-            for key, a, b in _differing_leaves(run, given, ignore, prefix, schema)]
+            for key, a, b, _ in _differing_leaves(run, given, ignore, prefix, schema)]
 
 
 def resume_overrides(run: Mapping[str, Any], given: Mapping[str, Any], ignore: tuple[str, ...] = ("resume", "device"),
                      schema: type | None = None) -> list[str]:
     """The command-line overrides (``key=value``) that give the run's value for each leaf
-    :func:`config_differences` reports and the run has: what resumes a run after a preset's default changed."""
-    return [f"{key}={_override_value(a)}" for key, a, _ in _differing_leaves(run, given, ignore, "", schema)
-            if a != "<absent>"]
+    :func:`config_differences` reports: what resumes a run after a preset's default changed. A leaf the run lacks (a
+    key added after it was written) gets the schema's default, the behaviour the run had; without one it is left out."""
+    fix = []
+    for key, a, _, default in _differing_leaves(run, given, ignore, "", schema):
+        if a == "<absent>":  # a key added after the run was written: its schema default is the behaviour the run had
+            if default is MISSING:
+                continue
+            a = default
+        fix.append(f"{key}={_override_value(a)}")
+    return fix
 
 
 def _differing_leaves(run, given, ignore, prefix, schema):
-    """``(dotted key, run's value, command's value)`` for each differing leaf (see :func:`config_differences`)."""
+    """``(dotted key, run's value, command's value, the schema's default or MISSING)`` for each differing leaf (see
+    :func:`config_differences`)."""
     hints = typing.get_type_hints(schema) if schema is not None else {}
     for key in sorted(set(run) | set(given)):
         if prefix + key in ignore:
@@ -840,7 +851,7 @@ def _differing_leaves(run, given, ignore, prefix, schema):
         elif key not in run and b == _schema_default(schema, key):
             continue
         elif a != b:
-            yield prefix + key, a, b
+            yield prefix + key, a, b, _schema_default(schema, key)
 
 
 def _override_value(value) -> str:

@@ -422,6 +422,31 @@ def test_resume_overrides_give_back_the_runs_config_after_a_preset_default_chang
                                    resolve=False)
     assert config_schema.config_differences(run, again, schema=schema) == []
 
+def test_runs_written_before_the_finger_pads_torsional_friction_resume_and_rescore_on_their_own_physics():
+    """Every task's env config sets the anchor's 0.1; a stored config without the key (runs before 2026-11-27)
+    builds its env with 0, and resuming such a run under today's presets is refused with the override that
+    gives back its physics, which then composes to the run's config."""
+    from ldm_rl.envs.torchrl_env import env_kwargs_from_config
+
+    for path in sorted((CONF / "env").glob("*.yaml")):
+        assert OmegaConf.load(path).finger_spinning_friction == 0.1, path.name
+    given = OmegaConf.to_container(make_cfg("experiment=curves_house_building", config_name="train_policy"), resolve=False)
+    assert env_kwargs_from_config(given["env"])[1]["gripper"] == {"finger_spinning_friction": 0.1}
+    run = copy.deepcopy(given)
+    del run["env"]["finger_spinning_friction"]
+    assert env_kwargs_from_config(run["env"])[1]["gripper"] == {"finger_spinning_friction": 0.0}
+    schema = config_schema.TrainPolicyConfig
+    assert config_schema.config_differences(run, given, schema=schema) == [
+        "env.finger_spinning_friction: the run has '<absent>', the command gives 0.1"]
+    fix = config_schema.resume_overrides(run, given, schema=schema)
+    assert fix == ["env.finger_spinning_friction=0.0"]
+    again = OmegaConf.to_container(make_cfg("experiment=curves_house_building", *fix, config_name="train_policy"),
+                                   resolve=False)
+    assert config_schema.config_differences(run, again, schema=schema) == []
+    with pytest.raises(ValueError, match="env.finger_spinning_friction must be a number >= 0, got -0.1"):
+        env_kwargs_from_config({**given["env"], "finger_spinning_friction": -0.1})
+
+
 def test_every_recipe_defaults_to_the_same_device():
     devices = {name: OmegaConf.load(CONF / f"{name}.yaml").get("device") for name in ("train_dynamics", "train_policy", "evaluate")}
     assert set(devices.values()) == {"auto"}, devices

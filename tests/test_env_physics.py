@@ -171,6 +171,32 @@ def test_tipped_roof_terminates_house_building():
         env.close()
 
 
+@pytest.mark.parametrize("spinning, level", [(0.1, True), (0.0, False)])
+def test_a_roof_gripped_off_its_centre_hangs_level_only_with_the_finger_pads_torsional_friction(spinning, level):
+    """A roof gripped 1 cm off its centre along its length and 5 mm along its ridge, at a 20° yaw error (within one
+    rotation bin and a few pixels of a greedy pick): the anchor's finger pads (spinning friction 0.1) hold it level;
+    point contacts without torsional friction let it pivot about the finger axis (tilted > 20°, as 7 of 8 such
+    picks on seeds 0-7), and a tilted roof tips off the cubes when placed."""
+    from ldm_rl.envs.gripper import GripperConfig
+
+    env = gym.make("ldm_rl/HouseBuilding-v0", gripper=GripperConfig(finger_spinning_friction=spinning)).unwrapped
+    try:
+        env.reset(seed=0)
+        roof = env.roof
+        (x, y, _), _ = env.sim.pose(roof.body)
+        yaw = env.sim.yaw(roof.body)
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = 0.005, 0.01  # along the ridge (local x, the closing direction), along the roof's length (local y)
+        px, py = x + c * dx - s * dy, y + s * dx + c * dy
+        row, col = env.workspace.metric_to_pixel(np.array([px, py]), clamp=True)
+        held = env.gripper.pick(px, py, env._pick_height(int(row), int(col)), yaw + math.radians(20))
+        assert held is not None and held.body == roof.body
+        tilt = math.degrees(env.sim.tilt(roof.body))
+        assert (tilt < 5) if level else (tilt > 20), tilt
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("spacing, standing", [(0.045, True), (0.07, True), (0.095, True), (0.14, True), (0.17, False)])
 def test_house_succeeds_whenever_the_roof_rests_on_both_cubes(spacing, standing):
     """The anchor's check: cubes on the table, roof upright on both and touching both; the spacing is the

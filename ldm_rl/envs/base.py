@@ -90,7 +90,7 @@ class PickPlaceEnv(gym.Env):
         expert_noise: ExpertNoise | dict | None = None,
         workspace: geometry.Workspace | None = None,
         physics: PhysicsConfig | None = None,
-        gripper: GripperConfig | None = None,
+        gripper: GripperConfig | dict | None = None,
         settle_steps: int = 60,
         reset_seed: int | None = None,
         object_counts: Sequence[int] | None = None,
@@ -129,6 +129,8 @@ class PickPlaceEnv(gym.Env):
         )
         self.action_space = spaces.MultiDiscrete([n, n, num_rotations])
         self.sim = Simulation(physics or PhysicsConfig())
+        if isinstance(gripper, dict):
+            gripper = GripperConfig(**gripper)
         self._gripper_config = gripper or GripperConfig()
         self.gripper = ParallelJawGripper(self.sim, self._gripper_config)
         self.camera = HeightmapCamera(self.workspace)

@@ -38,6 +38,10 @@ class GripperConfig:
     slide_force: float = 60.0
     slide_speed: float = 0.4
     finger_friction: float = 1.0
+    # torsional friction at the finger pads (the anchor's finger contacts: 0.1). Point contacts without it let a
+    # part gripped off its centre pivot about the finger axis: a roof gripped 5 mm off its centre at a 5-20° yaw
+    # error hung 17-67° tilted in half of such picks and tipped off the cubes when placed (docs/environments.md)
+    finger_spinning_friction: float = 0.1
     approach: float = 0.03  # simulated descent before grasping / releasing
     lift: float = 0.06  # simulated lift after closing
     place_approach: float = 0.02
@@ -45,6 +49,10 @@ class GripperConfig:
     max_motion_steps: int = 40
     max_close_steps: int = 30
     hold_steps: int = 8
+
+    def __post_init__(self):
+        if not self.finger_spinning_friction >= 0:
+            raise ValueError(f"finger_spinning_friction must be >= 0, got {self.finger_spinning_friction!r}")
 
 
 class ParallelJawGripper:
@@ -91,7 +99,8 @@ class ParallelJawGripper:
             physicsClientId=cid,
         )
         for link in (SLIDE, FINGER_A, FINGER_B):
-            sim.set_contact_dynamics(self.body, link, friction=c.finger_friction, mass_damping=False)
+            sim.set_contact_dynamics(self.body, link, friction=c.finger_friction, mass_damping=False,
+                                     spinning_friction=c.finger_spinning_friction)
         self._teleport(PARK_POSITION, 0.0, slide=0.0, fingers=self._open_q)
 
     # --- public primitives -------------------------------------------------------------------

@@ -82,11 +82,14 @@ class Simulation:
             self._shapes[key] = build(self.client)
         return self._shapes[key]
 
-    def set_contact_dynamics(self, body: int, link: int, *, friction: float, mass_damping: bool = True) -> None:
-        """Apply the tuned contact model (stiffness/damping, no restitution) and friction to a link."""
+    def set_contact_dynamics(self, body: int, link: int, *, friction: float, mass_damping: bool = True,
+                             spinning_friction: float = 0.0) -> None:
+        """Apply the tuned contact model (stiffness/damping, no restitution), lateral friction and torsional
+        (``spinning_friction``: about the contact normal) friction to a link."""
         p = self.physics
         kwargs = dict(
             lateralFriction=friction,
+            spinningFriction=spinning_friction,
             restitution=0.0,
             contactStiffness=p.contact_stiffness,
             contactDamping=p.contact_damping,

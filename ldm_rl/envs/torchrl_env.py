@@ -103,7 +103,14 @@ def env_kwargs_from_config(cfg: Mapping[str, Any], *, training: bool = False) ->
         "num_rotations": cfg.get("num_rotations"),  # absent: the env's default
         "object_counts": list(counts) if counts is not None else None,
     }
-    return cfg["id"], {k: v for k, v in kwargs.items() if v is not None}
+    kwargs = {k: v for k, v in kwargs.items() if v is not None}
+    # the finger pads' torsional friction (conf/env/*.yaml: 0.1, the anchor's); a config stored before the key
+    # existed (runs before 2026-11-27) gets 0, the physics it ran on, so old runs resume and re-score as they were
+    spin = cfg.get("finger_spinning_friction", 0.0)
+    if isinstance(spin, bool) or not isinstance(spin, (int, float)) or not spin >= 0:
+        raise ValueError(f"env.finger_spinning_friction must be a number >= 0, got {spin!r}")
+    kwargs["gripper"] = {"finger_spinning_friction": float(spin)}
+    return cfg["id"], kwargs
 
 
 def make_env_from_config(cfg: Mapping[str, Any], *, training: bool = False, **overrides):
