@@ -646,6 +646,8 @@ class EvaluateConfig(RunSettings):
     max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode (null = 2*objects + 4)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="the preset the checkpoint must hold")
     failed_pick_memory: Optional[int] = spec(None, ge=0, le=64, doc="env.failed_pick_memory (null = the checkpoint's)")
+    finger_spinning_friction: Optional[float] = spec(
+        None, ge=0, doc="env.finger_spinning_friction (null = the checkpoint's: 0 for runs before 2026-11-27)")
     online_weights: bool = spec(False, doc="play the online weights of a run trained with agent.greedy_ema_decay, "
                                            "not their average")
     progress: bool = True

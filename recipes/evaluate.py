@@ -77,6 +77,8 @@ def evaluate(cfg: DictConfig) -> dict:
     for key in ("num_objects", "max_steps", "failed_pick_memory"):
         if cfg[key] is not None:
             env_cfg[key] = int(cfg[key])
+    if cfg.finger_spinning_friction is not None:
+        env_cfg["finger_spinning_friction"] = float(cfg.finger_spinning_friction)
     if cfg.num_objects is not None and cfg.max_steps is None:
         env_cfg["max_steps"] = None  # 2·objects + slack for the new object count
     env = make_env_from_config(env_cfg)
@@ -98,7 +100,8 @@ def evaluate(cfg: DictConfig) -> dict:
     result = evaluate_policy(env, policy, int(cfg.episodes), seed=scenes, progress=bool(cfg.progress),
                              on_episode=on_episode)
     summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],
-               "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name, **result.as_dict()}
+               "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name,
+               "finger_spinning_friction": float(env_cfg.get("finger_spinning_friction", 0.0)), **result.as_dict()}
     if blocks_in_bin is not None:  # and the scripted expert on the same scenes
         summary["packing"] = packing_report(env, returns, blocks_in_bin, seed=scenes, progress=bool(cfg.progress))
         log.info(f"bin packing: {packing_line(summary['packing'])}; the scripted expert on the same scenes: "

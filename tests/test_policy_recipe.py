@@ -68,13 +68,15 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     assert result["num_objects"] == 4 and result["trained_on"] == 3 and result["episodes"] == 2
     assert result["ci_low"] <= result["success_rate"] <= result["ci_high"]
     assert "online_weights" not in result  # the averaged weights, what the run's own evaluations played
+    assert result["finger_spinning_friction"] == 0.1  # the physics the run was trained on (conf/env)
 
     # the same training played with its online weights (the run has agent.greedy_ema_decay)
     online = tmp_path / "online"
     proc = run("evaluate.py", f"checkpoint={out / 'checkpoint.pt'}", "episodes=1", "online_weights=true", "progress=false",
-               f"hydra.run.dir={online}", cwd=tmp_path)
+               "finger_spinning_friction=0", f"hydra.run.dir={online}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert json.loads((online / "evaluation.json").read_text())["online_weights"] is True
+    result = json.loads((online / "evaluation.json").read_text())
+    assert result["online_weights"] is True and result["finger_spinning_friction"] == 0.0  # played on other physics
 
 
 @pytest.mark.slow
