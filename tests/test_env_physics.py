@@ -197,6 +197,18 @@ def test_a_roof_gripped_off_its_centre_hangs_level_only_with_the_finger_pads_tor
         env.close()
 
 
+def test_gripper_settings_given_as_a_dict_are_checked_by_name_and_value():
+    with pytest.raises(ValueError, match=r"gripper has no setting \['finger_spinning_fiction'\]; the settings are"):
+        gym.make("ldm_rl/HouseBuilding-v0", gripper={"finger_spinning_fiction": 0.1})
+    with pytest.raises(ValueError, match="finger_spinning_friction must be >= 0, got -1"):
+        gym.make("ldm_rl/HouseBuilding-v0", gripper={"finger_spinning_friction": -1})
+    env = gym.make("ldm_rl/HouseBuilding-v0", gripper={"finger_spinning_friction": 0.0}).unwrapped
+    try:
+        assert env.gripper.config.finger_spinning_friction == 0.0
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("spacing, standing", [(0.045, True), (0.07, True), (0.095, True), (0.14, True), (0.17, False)])
 def test_house_succeeds_whenever_the_roof_rests_on_both_cubes(spacing, standing):
     """The anchor's check: cubes on the table, roof upright on both and touching both; the spacing is the

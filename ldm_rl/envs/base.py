@@ -22,7 +22,7 @@ extend ``_invalid_reason`` and ``_reward``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Callable, Sequence
 
 import gymnasium as gym
@@ -128,10 +128,13 @@ class PickPlaceEnv(gym.Env):
             holding=spaces.MultiBinary(1),
         )
         self.action_space = spaces.MultiDiscrete([n, n, num_rotations])
-        self.sim = Simulation(physics or PhysicsConfig())
-        if isinstance(gripper, dict):
+        if isinstance(gripper, dict):  # e.g. {"finger_spinning_friction": 0.0} from a config
+            known = {f.name for f in fields(GripperConfig)}
+            if set(gripper) - known:
+                raise ValueError(f"gripper has no setting {sorted(set(gripper) - known)}; the settings are {sorted(known)}")
             gripper = GripperConfig(**gripper)
         self._gripper_config = gripper or GripperConfig()
+        self.sim = Simulation(physics or PhysicsConfig())
         self.gripper = ParallelJawGripper(self.sim, self._gripper_config)
         self.camera = HeightmapCamera(self.workspace)
         self._heightmap = np.zeros((n, n), np.float32)
