@@ -39,8 +39,8 @@ class GripperConfig:
     slide_speed: float = 0.4
     finger_friction: float = 1.0
     # torsional friction at the finger pads (the anchor's finger contacts: 0.1). Point contacts without it let a
-    # part gripped off its centre pivot about the finger axis: a roof gripped 5 mm off its centre at a 5-20° yaw
-    # error hung 17-67° tilted in half of such picks and tipped off the cubes when placed (docs/environments.md)
+    # part gripped off its centre pivot about the finger axis: of 230 roofs gripped 0-10 mm off centre at 0-20° yaw
+    # error, 43 hung > 20° tilted (none with it), and a tilted roof tips off the cubes (docs/environments.md)
     finger_spinning_friction: float = 0.1
     approach: float = 0.03  # simulated descent before grasping / releasing
     lift: float = 0.06  # simulated lift after closing

@@ -218,11 +218,13 @@ def select(panels: dict, only: list[str]) -> dict:
     """``panels`` with only the lines labelled in ``only`` (panels left without a line are dropped). A label keeps
     its line in every panel; ``"<task name>: <label>"`` (``"House building: LDM [gamma08]"``) only in that task's
     panels. A label that names no line is an error, so a typo does not drop a line silently."""
-    def wanted(key, label: str) -> bool:
-        return label in only or f"{TASKS.get(key[0], (key[0],))[0]}: {label}" in only
+    def qualified(key, label: str) -> str:
+        return f"{TASKS.get(key[0], (key[0],))[0]}: {label}"
 
-    known = {name for key, lines in panels.items() for label in lines
-             for name in (label, f"{TASKS.get(key[0], (key[0],))[0]}: {label}")}
+    def wanted(key, label: str) -> bool:
+        return label in only or qualified(key, label) in only
+
+    known = {name for key, lines in panels.items() for label in lines for name in (label, qualified(key, label))}
     unknown = [label for label in only if label not in known]
     if unknown:
         raise ValueError(f"--only {', '.join(repr(u) for u in unknown)}: no such line; the lines are "
