@@ -393,6 +393,7 @@ class AgentConfig:
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="Q/V size; null = model.preset")
     q_width: Optional[float] = spec(None, gt=0, le=4, doc="Q channel multiplier override")
     q_frame_margin: int = spec(0, ge=0, lt=32, doc="pixels at each Q gripper frame's edge never proposed (0 = none)")
+    q_pick_min_height: float = spec(0.0, ge=0, doc="m: picks on pixels not above it (nothing to grasp) never proposed (0 = none)")
     q_architecture: str = spec("fcn", choices=("fcn", "equivariant"),
                                doc="Q network: QFCN (rotated scenes) | C_2R-equivariant e2cnn net (extra [equivariant])")
     value_width: Optional[float] = spec(None, gt=0, le=4, doc="V channel multiplier override")
@@ -471,6 +472,9 @@ class AgentConfig:
             found.append(f"{prefix}q_architecture={node.q_architecture} is set but agent=rs builds no Q network")
         if node.name == "rs" and node.get("q_log_floor") is not None:
             found.append(f"{prefix}q_log_floor={_show(node.q_log_floor)} is set but agent=rs builds no Q network")
+        if node.name == "rs" and node.get("q_pick_min_height"):
+            found.append(f"{prefix}q_pick_min_height={_show(node.q_pick_min_height)} is set but agent=rs builds no Q "
+                         "network (its candidates lie near objects already); set it to 0")
         if node.name != "ldm" and node.get("q_proposal_fit", 0):
             found.append(f"{prefix}q_proposal_fit={node.q_proposal_fit} is set but only agent=ldm uses it "
                          f"(agent.name={node.name}); set it to 0")

@@ -227,6 +227,9 @@ BAD_COMMANDS = [
     ("train_policy.py", ["agent.q_log_floor=0"], "error: agent.q_log_floor=0.0 is out of range: must be in (0, 1)"),
     ("train_policy.py", ["agent=rs", "agent.q_log_floor=0.01"],
      "error: agent.q_log_floor=0.01 is set but agent=rs builds no Q network"),
+    ("train_policy.py", ["agent=rs", "agent.q_pick_min_height=0.015"],
+     "error: agent.q_pick_min_height=0.015 is set but agent=rs builds no Q network"),
+    ("train_policy.py", ["agent.q_pick_min_height=-0.01"], "error: agent.q_pick_min_height=-0.01 is out of range"),
     ("train_policy.py", ["agent.value_augmentation=flips"], "agent.value_augmentation='flips' is invalid: must be one of"),
     ("train_policy.py", ["agent=dynaq", "agent.termination_head=true"],
      "error: agent.termination_head=true is set but only agent=ldm uses it (agent.name=dynaq)"),
@@ -520,7 +523,8 @@ def _differences(a, b, prefix=""):
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
-    ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation"}),
+    ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation",
+                                   "agent.q_pick_min_height"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
 ])
@@ -554,4 +558,11 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     config_schema.validate_config(house, config_schema.TrainPolicyConfig)
     bottles = make_cfg("experiment=curves_bottle_arrangement", f"agent={agent}", config_name="train_policy")
     assert bottles.agent.get("value_augmentation") == ("shifts" if agent == "ldm" else None)
+    # the bottles' pick mask reaches every agent with a Q network (rs refuses the key)
+    assert bottles.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
     config_schema.validate_config(bottles, config_schema.TrainPolicyConfig)
+    if agent != "rs":
+        from ldm_rl.agents import build_agent
+
+        built = build_agent(bottles, float(bottles.env.max_height))
+        assert built.policy.q_network.pick_min_height == 0.015

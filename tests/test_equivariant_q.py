@@ -131,6 +131,22 @@ def test_one_group_step_shifts_the_bins_by_one_up_to_the_grids_interpolation_err
 # --------------------------------------------------------------------------------------------
 # QFCN's interface
 # --------------------------------------------------------------------------------------------
+def test_pick_min_height_masks_the_same_picks_as_qfcn_and_survives_pickling():
+    """With pick_min_height the pick maps are -inf on the same pixels as QFCN's, elsewhere the unmasked net's
+    values; place maps untouched; a pickled copy keeps the setting."""
+    q, plain = tiny_eq(pick_min_height=0.015), tiny_eq()
+    fcn = QFCN(MAX_HEIGHT, 21, 8, TINY, pick_min_height=0.015)
+    scene, in_hand, holding = states(4, seed=2)
+    holding = torch.tensor([False, False, True, False])
+    with torch.no_grad():
+        maps, reference, fcn_maps = q(scene, in_hand, holding), plain(scene, in_hand, holding), fcn(scene, in_hand, holding)
+    masked = torch.isneginf(maps) & torch.isfinite(reference)
+    assert masked[~holding].any() and not masked[holding].any()
+    assert torch.equal(torch.isneginf(maps), torch.isneginf(fcn_maps))
+    assert torch.equal(maps[~masked], reference[~masked])
+    assert pickle.loads(pickle.dumps(q)).pick_min_height == 0.015
+
+
 def test_shapes_masks_and_action_values_match_qfcn():
     """[*B, R, 128, 128] maps, -inf exactly where QFCN's are (frame margin included), action_values = the map's
     entry (0 where -inf), a mixed batch = each sample alone; the same input errors."""

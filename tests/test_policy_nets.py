@@ -126,6 +126,35 @@ def test_a_frame_margin_masks_the_band_at_each_gripper_frames_edge_and_keeps_the
         QFCN(MAX_HEIGHT, frame_margin=-1)
 
 
+def test_pick_min_height_masks_picks_on_nothing_and_nothing_else():
+    """pick_min_height=h: each pick map is -inf at every rotation exactly on the pixels not above h (the table, a
+    tray's floor) and equal to the plain map elsewhere; place maps, a scene with almost nothing above h and the
+    training path (action_values) are untouched; a value outside [0, max_height) is refused by name."""
+    torch.manual_seed(0)
+    q = QFCN(MAX_HEIGHT, 21, 8, TINY, pick_min_height=0.015)
+    plain = QFCN(MAX_HEIGHT, 21, 8, TINY)
+    plain.load_state_dict(q.state_dict())
+    scene = torch.zeros(3, 1, 128, 128)
+    scene[:, :, 20:44, 30:60] = 0.04  # a block
+    scene[:, :, 80:100, 80:100] = 0.01  # a tray floor: not above 1.5 cm
+    scene[2] = 0.0
+    scene[2, :, 60:65, 60:65] = 0.04  # 25 pixels above h: too few to mask
+    in_hand, holding = torch.zeros(3, 1, 24, 24), torch.tensor([False, True, False])
+    with torch.no_grad():
+        maps, reference = q(scene, in_hand, holding), plain(scene, in_hand, holding)
+    empty = (scene[0, 0] <= 0.015).expand(8, -1, -1)
+    assert torch.isneginf(maps[0][empty]).all()
+    assert torch.equal(maps[0][~empty], reference[0][~empty]) and torch.isfinite(maps[0][~empty]).any()
+    assert torch.equal(maps[1:], reference[1:])  # the place map, and the scene with 25 pixels above h
+    action = torch.tensor([[90, 90, 0], [90, 90, 0], [90, 90, 0]])
+    with torch.no_grad():
+        assert torch.isfinite(q.action_values(scene, in_hand, holding, action)).all()
+    for bad in (-0.01, MAX_HEIGHT, True):
+        with pytest.raises(ValueError, match="pick_min_height must be a number of metres in"):
+            QFCN(MAX_HEIGHT, pick_min_height=bad)
+    assert build_q_network("lite", max_height=MAX_HEIGHT, width=TINY, pick_min_height=0.02).pick_min_height == 0.02
+
+
 def _capture(q: QFCN):
     """Hooks recording the trunk inputs and the pick head's outputs (gripper frames), in batch order."""
     seen = {"inputs": [], "maps": []}

@@ -145,20 +145,21 @@ class EquivariantQFCN(nn.Module):
     """Pick/place Q maps over all pixels and R rotation bins, equivariant under C_2R. See the module docstring.
 
     Args: as :class:`~ldm_rl.models.q_fcn.QFCN` (``max_height`` metres of the top depth class, ``num_classes``
-    K, ``num_rotations`` R, ``width`` channel multiplier, ``frame_margin`` pixels).
+    K, ``num_rotations`` R, ``width`` channel multiplier, ``frame_margin`` pixels, ``pick_min_height`` metres).
     """
 
     CHUNK_SAMPLES = 8  # samples per pass on CPU (measured flat from 4 to 16, slower at 32)
 
     def __init__(
         self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0,
-        frame_margin: int = 0,
+        frame_margin: int = 0, pick_min_height: float = 0.0,
     ) -> None:
         super().__init__()
         from ldm_rl.models.q_fcn import _rotation_tables, check_q_arguments
 
-        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin)
-        self._init_args = (float(max_height), num_classes, num_rotations, float(width), frame_margin)
+        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height)
+        self._init_args = (float(max_height), num_classes, num_rotations, float(width), frame_margin, float(pick_min_height))
+        self.pick_min_height = float(pick_min_height)
         self.max_height, self.num_classes = float(max_height), num_classes
         self.num_rotations, self.width, self.frame_margin = num_rotations, float(width), frame_margin
 
@@ -279,13 +280,18 @@ class EquivariantQFCN(nn.Module):
             holding: ``[*B]`` or ``[*B, 1]`` bool; False → pick map, True → place map.
         Returns:
             ``[*B, R, 128, 128]`` float32; entry ``[..., k, row, col]`` is Q of action (row, col, k);
-            ``-inf`` where :class:`QFCN`'s maps are (outside bin k's gripper frame or within its margin).
+            ``-inf`` where :class:`QFCN`'s maps are (outside bin k's gripper frame or within its margin; with
+            ``pick_min_height``, picks on nothing).
         """
         batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
         size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
         if x.shape[0] == 0:
             return x.new_zeros(*batch, r, size, size)
         maps = self._all_maps(x, hand, holding).masked_fill(self._outside, float("-inf"))
+        if self.pick_min_height:
+            from ldm_rl.models.q_fcn import mask_empty_picks
+
+            maps = mask_empty_picks(maps, heightmap.reshape(-1, 1, size, size), holding, self.pick_min_height)
         return maps.reshape(*batch, r, size, size)
 
     def action_values(

@@ -136,7 +136,7 @@ def _channels_last(x: torch.Tensor) -> bool:
     return x.dim() >= 4 and x.shape[-3] > 1 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
 
 
-def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin) -> None:
+def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height=0.0) -> None:
     """The constructor arguments every Q map network takes; one ValueError naming the bad one."""
     encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
     if not isinstance(num_rotations, int) or isinstance(num_rotations, bool) or num_rotations < 1:
@@ -145,6 +145,25 @@ def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margi
         raise ValueError(f"width must be a positive number, got {width!r}")
     if not isinstance(frame_margin, int) or isinstance(frame_margin, bool) or not 0 <= frame_margin < geometry.HEIGHTMAP_SIZE // 4:
         raise ValueError(f"frame_margin must be an int in [0, {geometry.HEIGHTMAP_SIZE // 4}) pixels, got {frame_margin!r}")
+    real = isinstance(pick_min_height, (int, float)) and not isinstance(pick_min_height, bool)
+    if not real or not 0 <= pick_min_height < max_height:
+        raise ValueError(f"pick_min_height must be a number of metres in [0, max_height = {max_height}), got {pick_min_height!r}")
+
+
+MIN_PICK_PIXELS = 64  # a scene with fewer pixels above pick_min_height keeps its whole pick map
+
+
+def mask_empty_picks(maps: torch.Tensor, heightmap: torch.Tensor, holding: torch.Tensor, min_height: float) -> torch.Tensor:
+    """Pick maps with ``-inf`` wherever the fingers would close on nothing.
+
+    ``maps`` ``[N, R, H, W]``, ``heightmap`` ``[N, 1, H, W]`` metres, ``holding`` ``[N]`` bool. In each pick
+    map (``holding`` False) every pixel whose height is not above ``min_height`` (the table, a tray's floor)
+    reads ``-inf`` at every rotation; place maps and scenes with fewer than :data:`MIN_PICK_PIXELS` pixels
+    above it are returned as they are. Returns a new tensor.
+    """
+    empty = heightmap[:, 0] <= min_height  # [N, H, W]
+    keep = holding | ((~empty).flatten(1).sum(1) < MIN_PICK_PIXELS)
+    return maps.masked_fill((empty & ~keep[:, None, None]).unsqueeze(1), float("-inf"))
 
 
 def check_q_action(action, batch: tuple, num_rotations: int) -> torch.Tensor:
@@ -194,6 +213,9 @@ class QFCN(CompiledInference, nn.Module):
             the reference). The trunk's zero padding makes that band's values arbitrary, and an object
             there would lie partly outside the workspace; untrained, the band's Q outranked every object
             and put the greedy proposals on the image border (docs/policy.md).
+        pick_min_height: metres; > 0: a pick whose pixel is not above it (nothing to grasp) is ``-inf``
+            (:func:`mask_empty_picks`; 0 = none, the reference). Only :meth:`forward` masks: the maps that
+            propose actions and take target maxima; :meth:`action_values` (the loss) does not.
     """
 
     CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
@@ -203,11 +225,11 @@ class QFCN(CompiledInference, nn.Module):
 
     def __init__(
         self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0,
-        frame_margin: int = 0,
+        frame_margin: int = 0, pick_min_height: float = 0.0,
     ) -> None:
         super().__init__()
-        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin)
-        self.frame_margin = frame_margin
+        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height)
+        self.frame_margin, self.pick_min_height = frame_margin, float(pick_min_height)
         self.max_height, self.num_classes = float(max_height), num_classes
         self.num_rotations, self.width = num_rotations, float(width)
 
@@ -397,7 +419,8 @@ class QFCN(CompiledInference, nn.Module):
             holding: ``[*B]`` or ``[*B, 1]`` bool; False → pick map, True → place map.
         Returns:
             ``[*B, R, 128, 128]`` float32; entry ``[..., k, row, col]`` is Q of action (row, col, k);
-            ``-inf`` where bin k's rotated frame does not cover the pixel (never proposed, never a max).
+            ``-inf`` where bin k's rotated frame does not cover the pixel (never proposed, never a max) and,
+            with ``pick_min_height``, on pick maps where there is nothing to grasp.
         """
         batch, x, hand, holding = self._inputs(heightmap, in_hand, holding)
         size, r = geometry.HEIGHTMAP_SIZE, self.num_rotations
@@ -407,7 +430,10 @@ class QFCN(CompiledInference, nn.Module):
         ]
         if not parts:
             return x.new_zeros(*batch, r, size, size)
-        return (parts[0] if len(parts) == 1 else torch.cat(parts)).reshape(*batch, r, size, size)
+        maps = parts[0] if len(parts) == 1 else torch.cat(parts)
+        if self.pick_min_height:
+            maps = mask_empty_picks(maps, heightmap.reshape(-1, 1, size, size), holding, self.pick_min_height)
+        return maps.reshape(*batch, r, size, size)
 
     def action_values(
         self, heightmap: torch.Tensor, in_hand: torch.Tensor, holding: torch.Tensor, action: torch.Tensor
@@ -447,6 +473,7 @@ def build_q_network(
     width: float | None = None,
     frame_margin: int = 0,
     architecture: str = "fcn",
+    pick_min_height: float = 0.0,
 ) -> nn.Module:
     """A Q network at a preset width (``Q_PRESETS``); ``width`` overrides the preset's. ``architecture``
     (``Q_ARCHITECTURES``, ``agent.q_architecture``): ``"fcn"`` a :class:`QFCN`, ``"equivariant"`` an
@@ -455,7 +482,8 @@ def build_q_network(
         raise ValueError(f"unknown Q network preset {preset!r}; expected one of {sorted(Q_PRESETS)}")
     if architecture not in Q_ARCHITECTURES:
         raise ValueError(f"unknown Q architecture {architecture!r}; expected one of {list(Q_ARCHITECTURES)}")
-    args = (max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width, frame_margin)
+    args = (max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width, frame_margin,
+            pick_min_height)
     if architecture == "equivariant":
         from ldm_rl.models.equivariant_q import EquivariantQFCN  # raises MissingExtraError without e2cnn
 
