@@ -150,7 +150,7 @@ def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margi
         raise ValueError(f"pick_min_height must be a number of metres in [0, max_height = {max_height}), got {pick_min_height!r}")
 
 
-MIN_PICK_PIXELS = 64  # a scene with fewer pixels above pick_min_height keeps its whole pick map
+MIN_PICK_ENTRIES = 64  # a pick map the mask would leave with fewer finite entries keeps its unmasked ones
 
 
 def mask_empty_picks(maps: torch.Tensor, heightmap: torch.Tensor, holding: torch.Tensor, min_height: float) -> torch.Tensor:
@@ -158,12 +158,13 @@ def mask_empty_picks(maps: torch.Tensor, heightmap: torch.Tensor, holding: torch
 
     ``maps`` ``[N, R, H, W]``, ``heightmap`` ``[N, 1, H, W]`` metres, ``holding`` ``[N]`` bool. In each pick
     map (``holding`` False) every pixel whose height is not above ``min_height`` (the table, a tray's floor)
-    reads ``-inf`` at every rotation; place maps and scenes with fewer than :data:`MIN_PICK_PIXELS` pixels
-    above it are returned as they are. Returns a new tensor.
+    reads ``-inf`` at every rotation. Place maps, and pick maps that would keep fewer than
+    :data:`MIN_PICK_ENTRIES` finite entries (a nearly empty scene: the proposals need entries to draw), are
+    returned as they are. Returns a new tensor.
     """
-    empty = heightmap[:, 0] <= min_height  # [N, H, W]
-    keep = holding | ((~empty).flatten(1).sum(1) < MIN_PICK_PIXELS)
-    return maps.masked_fill((empty & ~keep[:, None, None]).unsqueeze(1), float("-inf"))
+    masked = maps.masked_fill((heightmap <= min_height) & ~holding.view(-1, 1, 1, 1), float("-inf"))
+    enough = torch.isfinite(masked).flatten(1).sum(1) >= MIN_PICK_ENTRIES
+    return torch.where(enough.view(-1, 1, 1, 1), masked, maps)
 
 
 def check_q_action(action, batch: tuple, num_rotations: int) -> torch.Tensor:
