@@ -8,7 +8,7 @@ import torch
 
 from ldm_rl import geometry as g
 from ldm_rl.models.blocks import count_parameters, encode_heights
-from ldm_rl.models.q_fcn import Q_PRESETS, QFCN, build_q_network
+from ldm_rl.models.q_fcn import Q_PRESETS, QFCN, build_q_network, mask_empty_picks
 from ldm_rl.models.v_cnn import V_PRESETS, VCNN, build_value_network
 from policy_helpers import q_states, quarter_turn_maps
 
@@ -153,6 +153,8 @@ def test_pick_min_height_masks_picks_on_nothing_and_nothing_else():
         with pytest.raises(ValueError, match="pick_min_height must be a number of metres in"):
             QFCN(MAX_HEIGHT, pick_min_height=bad)
     assert build_q_network("lite", max_height=MAX_HEIGHT, width=TINY, pick_min_height=0.02).pick_min_height == 0.02
+    with pytest.raises(ValueError, match=r"mask_empty_picks needs maps \[N, R, H, W\], heightmap \[N, 1, H, W\]"):
+        mask_empty_picks(maps[:2], scene, holding[:2], 0.015)
 
 
 def _capture(q: QFCN):

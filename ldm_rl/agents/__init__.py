@@ -90,7 +90,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     common = {"max_height": float(max_height), "num_classes": dynamics.num_classes}
     q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"),
                                 frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
-                           pick_min_height=float(agent_cfg.get("q_pick_min_height") or 0.0),
+                                pick_min_height=float(agent_cfg.get("q_pick_min_height") or 0.0),
                                 architecture=str(agent_cfg.get("q_architecture") or "fcn"), **common)
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"),
                                         termination_head=bool(agent_cfg.get("termination_head", False)), **common)

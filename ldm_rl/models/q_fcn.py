@@ -162,6 +162,10 @@ def mask_empty_picks(maps: torch.Tensor, heightmap: torch.Tensor, holding: torch
     :data:`MIN_PICK_ENTRIES` finite entries (a nearly empty scene: the proposals need entries to draw), are
     returned as they are. Returns a new tensor.
     """
+    n, _, h, w = maps.shape if maps.dim() == 4 else (None, None, None, None)
+    if n is None or tuple(heightmap.shape) != (n, 1, h, w) or holding.dtype != torch.bool or tuple(holding.shape) != (n,):
+        raise ValueError(f"mask_empty_picks needs maps [N, R, H, W], heightmap [N, 1, H, W] and holding bool [N], got "
+                         f"{tuple(maps.shape)}, {tuple(heightmap.shape)} and {holding.dtype} {tuple(holding.shape)}")
     masked = maps.masked_fill((heightmap <= min_height) & ~holding.view(-1, 1, 1, 1), float("-inf"))
     enough = torch.isfinite(masked).flatten(1).sum(1) >= MIN_PICK_ENTRIES
     return torch.where(enough.view(-1, 1, 1, 1), masked, maps)
