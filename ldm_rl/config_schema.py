@@ -652,6 +652,7 @@ class EvaluateConfig(RunSettings):
     failed_pick_memory: Optional[int] = spec(None, ge=0, le=64, doc="env.failed_pick_memory (null = the checkpoint's)")
     finger_spinning_friction: Optional[float] = spec(
         None, ge=0, doc="env.finger_spinning_friction (null = the checkpoint's: 0 for runs before 2026-11-27)")
+    q_pick_min_height: Optional[float] = spec(None, ge=0, doc="m: agent.q_pick_min_height (null = the checkpoint's; 0 = off)")
     online_weights: bool = spec(False, doc="play the online weights of a run trained with agent.greedy_ema_decay, "
                                            "not their average")
     progress: bool = True

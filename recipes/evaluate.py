@@ -5,6 +5,7 @@
     python recipes/evaluate.py -m checkpoint=... num_objects=4,5
     python recipes/evaluate.py checkpoint=... planner.name=tree            # the same weights, 2 steps ahead
     python recipes/evaluate.py checkpoint=... online_weights=true    # agent.greedy_ema_decay runs: not the average
+    python recipes/evaluate.py checkpoint=... q_pick_min_height=0.015   # Q proposes no pick on bare table
 
 Rebuilds the agent from the configuration stored in the checkpoint, plays ``episodes`` episodes under
 ``ExplorationType.DETERMINISTIC`` and logs the success rate with a 95 % Wilson interval (bin packing adds
@@ -72,7 +73,8 @@ def evaluate(cfg: DictConfig) -> dict:
     save_resolved_config(cfg, hydra_output_dir())
     path = hydra.utils.to_absolute_path(str(cfg.checkpoint))
     planner = {key: value for key, value in cfg.planner.items() if value is not None}
-    agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device), planner=planner)
+    agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device), planner=planner,
+                                  q_pick_min_height=cfg.q_pick_min_height)
     env_cfg = dict(train_cfg["env"])
     for key in ("num_objects", "max_steps", "failed_pick_memory"):
         if cfg[key] is not None:
@@ -110,6 +112,8 @@ def evaluate(cfg: DictConfig) -> dict:
         summary["planner"] = planner
     if cfg.failed_pick_memory is not None:
         summary["failed_pick_memory"] = int(cfg.failed_pick_memory)
+    if cfg.q_pick_min_height is not None:
+        summary["q_pick_min_height"] = float(cfg.q_pick_min_height)
     if cfg.online_weights:
         summary["online_weights"] = True
     if recorded:

@@ -342,12 +342,12 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
-        "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "failed_pick_memory=0",
+        "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "failed_pick_memory=0", "q_pick_min_height=0.015",
         f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0}
     assert result["episodes"] == 1
-    assert result["failed_pick_memory"] == 0
+    assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):
@@ -359,3 +359,38 @@ def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(
                                  "config": {"agent": {"name": "fcdqn"}, "planner": {"tau": 0.1}}})
     with pytest.raises(CheckpointError, match="apply to the ldm agent's planner; .* holds agent 'fcdqn'"):
         load_agent(path, planner={"name": "tree"})
+
+
+def test_a_checkpoint_plays_with_the_empty_pick_mask_set_at_load_and_bad_values_are_refused(tmp_path):
+    """load_agent(q_pick_min_height=h) builds the checkpoint's Q with the mask (the weights unchanged), so a run
+    trained without it is played with it; RS (no Q) and heights outside [0, max_height) are one clear error."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from ldm_rl.agents import build_agent, load_agent
+    from ldm_rl.run.checkpoint import CheckpointError, save_checkpoint
+
+    root = Path(__file__).resolve().parents[1]
+    with initialize_config_dir(version_base="1.3", config_dir=str(root / "conf")):
+        cfg = compose(config_name="train_policy", overrides=["experiment=smoke"])
+    trained = build_agent(cfg, float(cfg.env.max_height))
+    stored = {key: value for key, value in OmegaConf.to_container(cfg).items() if key != "logger"}  # names Hydra's run
+    meta = {"kind": "agent", "agent": "ldm", "preset": "lite", "task": cfg.env.id,
+            "config": OmegaConf.to_container(OmegaConf.create(stored), resolve=True)}
+    path = save_checkpoint(tmp_path / "checkpoint.pt", {"agent": trained.policy_state_dict()}, meta=meta)
+
+    plain, plain_cfg = load_agent(path)
+    masked, masked_cfg = load_agent(path, q_pick_min_height=0.02)
+    assert plain.greedy_policy.q_network.pick_min_height == 0.0 and plain_cfg["agent"].get("q_pick_min_height", 0) == 0
+    assert masked.greedy_policy.q_network.pick_min_height == 0.02 and masked_cfg["agent"]["q_pick_min_height"] == 0.02
+    assert masked.evaluation_policy().q_network.pick_min_height == 0.02  # what recipes/evaluate.py plays
+    for key, value in plain.greedy_policy.q_network.state_dict().items():
+        assert torch.equal(value, masked.greedy_policy.q_network.state_dict()[key]), key
+
+    too_high = float(cfg.env.max_height)
+    with pytest.raises(CheckpointError, match=rf"q_pick_min_height must be in \[0, max_height = {too_high}\) .* got {too_high}"):
+        load_agent(path, q_pick_min_height=too_high)
+    rs = save_checkpoint(tmp_path / "rs.pt", {"agent": {}},
+                         meta={**meta, "agent": "rs", "config": {**meta["config"], "agent": {"name": "rs"}}})
+    with pytest.raises(CheckpointError, match="q_pick_min_height=0.02 masks a Q network's picks; .* holds agent 'rs'"):
+        load_agent(rs, q_pick_min_height=0.02)

@@ -233,13 +233,16 @@ def build_agent(cfg: Mapping[str, Any], max_height: float):
     return AGENTS[name](cfg, max_height)
 
 
-def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mapping[str, Any] | None = None):
+def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mapping[str, Any] | None = None,
+               q_pick_min_height: float | None = None):
     """Rebuild the agent saved by ``recipes/train_policy.py`` at ``path``; returns ``(agent, config)``.
 
     ``preset``: when given, the checkpoint must hold that preset (one clear error otherwise). ``planner``:
     keys set over the checkpoint's planner config (the LDM agent's weights planned another way, e.g.
     ``{"name": "tree", "depth": 2}``; a tree planner's unset keys take :class:`~ldm_rl.planning.TreePlanner`'s
-    defaults and the agent's γ). The returned config holds the planner actually built.
+    defaults and the agent's γ). ``q_pick_min_height`` (m): Q's empty-pick mask set over the checkpoint's
+    ``agent.q_pick_min_height`` (0 = off; a setting of the network, not a weight). The returned config holds
+    what was actually built.
     """
     from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint
 
@@ -251,6 +254,15 @@ def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mappin
             raise CheckpointError(f"planner overrides {dict(planner)} apply to the ldm agent's planner; {path} "
                                   f"holds agent {cfg['agent']['name']!r}")
         cfg = {**cfg, "planner": {**cfg["planner"], **_plain(planner)}}
+    if q_pick_min_height is not None:
+        if cfg["agent"]["name"] == "rs":
+            raise CheckpointError(f"q_pick_min_height={q_pick_min_height!r} masks a Q network's picks; {path} holds "
+                                  "agent 'rs', which has none")
+        max_height = float(cfg["env"]["max_height"])
+        if not 0 <= float(q_pick_min_height) < max_height:
+            raise CheckpointError(f"q_pick_min_height must be in [0, max_height = {max_height}) metres for {path}, got "
+                                  f"{q_pick_min_height!r}")
+        cfg = {**cfg, "agent": {**cfg["agent"], "q_pick_min_height": float(q_pick_min_height)}}
     agent = build_agent(cfg, float(cfg["env"]["max_height"])).to(device)
     agent.load_policy_state_dict(checkpoint.state["agent"])  # best_policy.pt holds no target copies
     return agent.eval(), cfg
