@@ -119,6 +119,56 @@ def test_the_uncertainty_penalty_scores_v_minus_lambda_entropy(nets):
         LookaheadPlanner(q, dynamics, value, uncertainty_penalty=-0.1)
 
 
+def test_rank_empty_picks_last_sets_only_predicted_empty_picks_of_states_with_a_holding_alternative():
+    from ldm_rl.planning.planner import rank_empty_picks_last
+
+    scores = torch.tensor([[0.9, 0.5, 0.7], [0.9, 0.5, 0.7], [0.9, 0.5, 0.7], [0.9, 0.5, 0.7]])
+    holding = torch.tensor([False, False, False, True])  # the last decision is a place
+    next_holding = torch.tensor([[False, True, False], [False, False, False], [True, True, True], [False, False, False]])
+    ranked = rank_empty_picks_last(scores, holding, next_holding)
+    inf = float("-inf")
+    assert torch.equal(ranked, torch.tensor([[inf, 0.5, inf], [0.9, 0.5, 0.7], [0.9, 0.5, 0.7], [0.9, 0.5, 0.7]]))
+    assert ranked[0].argmax() == 1  # the pick predicted to hold wins though V rated the empty ones higher
+    assert torch.equal(rank_empty_picks_last(scores, holding.view(4, 1).int(), next_holding), ranked)  # [B, 1] 0/1
+    with pytest.raises(ValueError, match=r"must agree, got \(4, 3\), \(4, 2\) and \(4,\)"):
+        rank_empty_picks_last(scores, holding, next_holding[:, :2])
+
+
+class HoldingPattern(nn.Module):
+    """The tiny LDM with its predicted hand state replaced: a pick holds iff its rotation bin is odd."""
+
+    def __init__(self, dynamics):
+        super().__init__()
+        self.inner = dynamics
+
+    def predict(self, heightmap, in_hand, holding, actions):
+        pred = self.inner.predict(heightmap, in_hand, holding, actions)
+        picked = (actions[:, 2] % 2 == 1).view(-1, 1) & ~holding.view(-1, 1).bool()
+        return pred._replace(holding=picked)
+
+
+def test_the_planner_with_empty_picks_last_never_chooses_a_predicted_empty_pick_beside_one_that_holds(nets):
+    q, dynamics, value = nets
+    model = HoldingPattern(dynamics)
+    options = dict(GREEDY, num_candidates=8, sigma_rot=0.0)
+    plain = LookaheadPlanner(q, model, value, **options)
+    ranked = LookaheadPlanner(q, model, value, empty_picks_last=True, **options)
+    data = batch(6)
+    data["holding"] = torch.zeros_like(data["holding"])
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        before, after = plain(data.clone()), ranked(data.clone())
+    assert torch.equal(after["candidate_actions"], before["candidate_actions"])  # the same proposals and values
+    torch.testing.assert_close(after["candidate_values"], before["candidate_values"])
+    holds = after["candidate_actions"][..., 2] % 2 == 1
+    assert holds.any(-1).all() and (~holds).any(-1).all()  # every state has both kinds of proposals
+    best_holding = torch.where(holds, after["candidate_values"], float("-inf")).argmax(-1)
+    assert torch.equal(after["action"], after["candidate_actions"][torch.arange(6), best_holding])
+    chose_empty = before["action"][:, 2] % 2 == 0
+    assert chose_empty.any()  # V alone chose an empty pick somewhere: the option changed that decision
+    with pytest.raises(ValueError, match="empty_picks_last must be True or False, got 1"):
+        LookaheadPlanner(q, dynamics, value, empty_picks_last=1)
+
+
 def test_the_target_uncertainty_penalty_lowers_each_bootstrap_by_lambda_entropy():
     q, dynamics, value = tiny_networks(0)
     lam = 0.5
@@ -337,15 +387,16 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
 
     train = tmp_path / "train"
     run("train_policy.py", "experiment=smoke", "planner=tree", "planner.depth=2", "planner.branching=2",
-        "planner.uncertainty_penalty=0.1", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
+        "planner.uncertainty_penalty=0.1", "planner.empty_picks_last=true", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
         "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1", f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
-        "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "failed_pick_memory=0", "q_pick_min_height=0.015",
+        "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true", "failed_pick_memory=0",
+        "q_pick_min_height=0.015",
         f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
-    assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0}
+    assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015
 

@@ -13,7 +13,9 @@ One decision, batched over ``[*B]`` states (paper §3.3–3.4):
 Option (not in the paper, off by default): ``uncertainty_penalty`` λ > 0 scores each candidate by
 ``V(f(s, a)) − λ·H(s, a)``, ``H`` the LDM's mean pixel entropy inside B_a
 (:func:`~ldm_rl.world_model.core.pixel_entropy`, from the logits the lookahead computes anyway): among
-outcomes V rates alike, the planner prefers those its model is sure of (paper §5).
+outcomes V rates alike, the planner prefers those its model is sure of (paper §5). ``empty_picks_last``:
+a pick the LDM predicts to leave the hand empty is ranked below every candidate of the same state predicted to
+hold (:func:`rank_empty_picks_last`).
 
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
@@ -34,10 +36,28 @@ from ldm_rl.planning.policy import ScheduleLike, StatePolicy
 from ldm_rl.planning.sampling import mask_actions, sample_candidates
 from ldm_rl.torch_utils import eval_mode
 
-__all__ = ["LookaheadPlanner"]
+__all__ = ["LookaheadPlanner", "rank_empty_picks_last"]
 
 PROPOSAL_MODES = ("softmax", "argmax")
 GREEDY_SCHEDULES = ("start", "current")
+
+
+def rank_empty_picks_last(scores: torch.Tensor, holding: torch.Tensor, next_holding: torch.Tensor) -> torch.Tensor:
+    """``scores`` ``[B, N]`` with ``-inf`` at every pick predicted to come up empty, in the states where another
+    candidate is predicted to hold.
+
+    An empty pick leaves the scene as it was, so (the dynamics deterministic) its value is γ·V*(s) — below
+    V*(s), the value of the best action, whenever that is positive: never the best choice while anything else
+    can be done. V scores such a pick by V(s) itself, so wherever V over-rates the current state the greedy
+    planner repeats the pick to the step limit (docs/policy.md, "Empty picks"). ``holding`` ``[B]`` or
+    ``[B, 1]`` (bool / 0-1: a place decision is left as it is), ``next_holding`` ``[B, N]`` bool, the LDM's
+    predicted hand state. A state whose candidates are all predicted empty keeps its scores.
+    """
+    if scores.dim() != 2 or next_holding.shape != scores.shape or holding.numel() != scores.shape[0]:
+        raise ValueError(f"scores [B, N], next_holding [B, N] and holding [B] must agree, got "
+                         f"{tuple(scores.shape)}, {tuple(next_holding.shape)} and {tuple(holding.shape)}")
+    empty = ~holding.reshape(-1, 1).bool() & ~next_holding.bool()
+    return scores.masked_fill(empty & (~empty).any(dim=1, keepdim=True), float("-inf"))
 
 
 class LookaheadPlanner(StatePolicy):
@@ -61,6 +81,8 @@ class LookaheadPlanner(StatePolicy):
             preset is slower in bf16: measure before enabling).
         write_action_value: also write the ``[*B, R, H, W]`` Q map (``action_value``), 512 KB per state.
         uncertainty_penalty: λ ≥ 0 (V units per nat): candidates are scored ``V − λ·H`` (0 = the paper).
+        empty_picks_last: picks the LDM predicts to leave the hand empty are scored ``-inf`` where another
+            candidate is predicted to hold (:func:`rank_empty_picks_last`; False = the paper).
 
     Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again);
     writes ``action`` ``[*B, 3]``, ``candidate_actions``
@@ -87,12 +109,16 @@ class LookaheadPlanner(StatePolicy):
         autocast: str | None = None,
         write_action_value: bool = True,
         uncertainty_penalty: float = 0.0,
+        empty_picks_last: bool = False,
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
         if isinstance(uncertainty_penalty, bool) or not isinstance(uncertainty_penalty, (int, float)) \
                 or not uncertainty_penalty >= 0:
             raise ValueError(f"uncertainty_penalty must be a number >= 0 (V units per nat), got {uncertainty_penalty!r}")
         self.uncertainty_penalty = float(uncertainty_penalty)
+        if not isinstance(empty_picks_last, bool):
+            raise ValueError(f"empty_picks_last must be True or False, got {empty_picks_last!r}")
+        self.empty_picks_last = empty_picks_last
         self.lookahead_options: dict[str, bool] = {}  # extra lookahead outputs :meth:`backup` reads
         actions = getattr(q_network, "num_rotations", 1) * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
         if not isinstance(num_candidates, int) or isinstance(num_candidates, bool) or not 1 <= num_candidates <= actions:
@@ -140,14 +166,17 @@ class LookaheadPlanner(StatePolicy):
         return q_map, candidates
 
     def score(self, heightmap, in_hand, holding, candidates, **options):
-        """``(scores [B, N], lookahead result)``: ``V(f(s, a)) − λ·H(s, a)`` of ``candidates`` ``[B, N, 3]``;
-        ``options`` go to :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``)."""
+        """``(scores [B, N], lookahead result)``: ``V(f(s, a)) − λ·H(s, a)`` of ``candidates`` ``[B, N, 3]``
+        (``-inf`` at predicted empty picks with ``empty_picks_last``); ``options`` go to
+        :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``)."""
         result = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
                            chunk_size=self.chunk_size, dynamics_autocast=self.autocast == "bf16",
                            with_entropy=bool(self.uncertainty_penalty), **options)
         scores = result.values
         if self.uncertainty_penalty:
             scores = scores - self.uncertainty_penalty * result.entropy
+        if self.empty_picks_last:
+            scores = rank_empty_picks_last(scores, holding, result.next_holding)
         return scores, result
 
     @staticmethod
