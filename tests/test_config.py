@@ -524,7 +524,7 @@ def _differences(a, b, prefix=""):
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
     ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation",
-                                   "agent.q_pick_min_height"}),
+                                   "agent.q_pick_min_height", "planner.empty_picks_last"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
 ])
@@ -560,9 +560,12 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert bottles.agent.get("value_augmentation") == ("shifts" if agent == "ldm" else None)
     # the bottles' pick mask reaches every agent with a Q network (rs refuses the key)
     assert bottles.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
+    # and its predicted empty picks ranked last reach the ldm agent's planner only
+    assert bottles.planner.empty_picks_last is (agent == "ldm") and house.planner.empty_picks_last is False
     config_schema.validate_config(bottles, config_schema.TrainPolicyConfig)
     if agent != "rs":
         from ldm_rl.agents import build_agent
 
         built = build_agent(bottles, float(bottles.env.max_height))
         assert built.policy.q_network.pick_min_height == 0.015
+        assert getattr(built.policy, "empty_picks_last", False) is (agent == "ldm")
