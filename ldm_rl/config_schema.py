@@ -615,7 +615,13 @@ class TrainPolicyConfig(RunSettings):
     resume: bool = False
     compile: bool = spec(False, doc="torch.compile the inference passes (decisions, lookahead targets)")
 
-    check = TrainDynamicsConfig.check
+    @staticmethod
+    def check(node: DictConfig, prefix: str) -> list[str]:
+        found = TrainDynamicsConfig.check(node, prefix)
+        if node.agent.name != "ldm" and node.planner.get("empty_picks_last"):
+            found.append(f"{prefix}planner.empty_picks_last=true is set but agent={node.agent.name} does not plan with "
+                         "the LDM's proposals: only agent=ldm uses it")
+        return found
 
 
 @dataclass

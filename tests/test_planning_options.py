@@ -357,6 +357,7 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("planner=tree", "planner.branching=11"), r"planner.branching=11 is out of range: must be <= planner.num_candidates"),
     (("planner.uncertainty_penalty=-1",), "planner.uncertainty_penalty=-1"),
     (("agent=fcdqn", "agent.target_uncertainty_penalty=0.1"), "only agent=ldm uses it"),
+    (("agent=rs", "planner.empty_picks_last=true"), "planner.empty_picks_last=true is set but agent=rs .* only agent=ldm"),
 ])
 def test_option_misuse_is_one_clear_config_error(overrides, message):
     from ldm_rl.config_schema import SCHEMAS, ConfigError, validate_config
