@@ -621,6 +621,9 @@ class TrainPolicyConfig(RunSettings):
         if node.agent.name != "ldm" and node.planner.get("empty_picks_last"):
             found.append(f"{prefix}planner.empty_picks_last=true is set but agent={node.agent.name} does not plan with "
                          "the LDM's proposals: only agent=ldm uses it")
+        if node.agent.name != "ldm" and node.planner.get("uncertainty_penalty"):
+            found.append(f"{prefix}planner.uncertainty_penalty={_show(node.planner.uncertainty_penalty)} is set but "
+                         f"agent={node.agent.name} does not score the LDM's proposals: only agent=ldm uses it")
         return found
 
 

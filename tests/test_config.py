@@ -524,7 +524,7 @@ def _differences(a, b, prefix=""):
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
     ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation",
-                                   "agent.q_pick_min_height", "planner.empty_picks_last"}),
+                                   "agent.q_pick_min_height", "planner.empty_picks_last", "planner.uncertainty_penalty"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
 ])
@@ -562,6 +562,8 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert bottles.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
     # and its predicted empty picks ranked last reach the ldm agent's planner only
     assert bottles.planner.empty_picks_last is (agent == "ldm") and house.planner.empty_picks_last is False
+    # and so does V − λ·H (λ = 0.25 nats⁻¹)
+    assert bottles.planner.uncertainty_penalty == (0.25 if agent == "ldm" else 0.0) and house.planner.uncertainty_penalty == 0.0
     config_schema.validate_config(bottles, config_schema.TrainPolicyConfig)
     if agent != "rs":
         from ldm_rl.agents import build_agent
@@ -569,3 +571,4 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
         built = build_agent(bottles, float(bottles.env.max_height))
         assert built.policy.q_network.pick_min_height == 0.015
         assert getattr(built.policy, "empty_picks_last", False) is (agent == "ldm")
+        assert getattr(built.policy, "uncertainty_penalty", 0.0) == (0.25 if agent == "ldm" else 0.0)

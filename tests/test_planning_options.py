@@ -358,6 +358,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("planner.uncertainty_penalty=-1",), "planner.uncertainty_penalty=-1"),
     (("agent=fcdqn", "agent.target_uncertainty_penalty=0.1"), "only agent=ldm uses it"),
     (("agent=rs", "planner.empty_picks_last=true"), "planner.empty_picks_last=true is set but agent=rs .* only agent=ldm"),
+    (("agent=dynaq", "planner.uncertainty_penalty=0.25"),
+     "planner.uncertainty_penalty=0.25 is set but agent=dynaq .* only agent=ldm"),
 ])
 def test_option_misuse_is_one_clear_config_error(overrides, message):
     from ldm_rl.config_schema import SCHEMAS, ConfigError, validate_config
