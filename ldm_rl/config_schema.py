@@ -618,12 +618,12 @@ class TrainPolicyConfig(RunSettings):
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
-        if node.agent.name != "ldm" and node.planner.get("empty_picks_last"):
-            found.append(f"{prefix}planner.empty_picks_last=true is set but agent={node.agent.name} does not plan with "
-                         "the LDM's proposals: only agent=ldm uses it")
-        if node.agent.name != "ldm" and node.planner.get("uncertainty_penalty"):
-            found.append(f"{prefix}planner.uncertainty_penalty={_show(node.planner.uncertainty_penalty)} is set but "
-                         f"agent={node.agent.name} does not score the LDM's proposals: only agent=ldm uses it")
+        for key in ("empty_picks_last", "uncertainty_penalty"):  # options of the LDM agent's planner alone
+            value = node.planner.get(key)
+            if node.agent.name != "ldm" and value:
+                shown = "true" if value is True else _show(value)
+                found.append(f"{prefix}planner.{key}={shown} is set but agent={node.agent.name} does not plan with "
+                             "the LDM's proposals: only agent=ldm uses it")
         return found
 
 
