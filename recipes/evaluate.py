@@ -10,7 +10,8 @@
 Rebuilds the agent from the configuration stored in the checkpoint, plays ``episodes`` episodes under
 ``ExplorationType.DETERMINISTIC`` and logs the success rate with a 95 % Wilson interval (bin packing adds
 ``packing``: packed fraction, mean pile top, mean return under ours and the authors' reward, blocks in the
-bin at the end, for the agent and for the scripted expert on the same scenes); writes
+bin at the end, for the agent and for the scripted expert on the same scenes; ``played_with``: Q's pick mask
+and the LDM agent's planner settings the decisions used, the checkpoint's own unless overridden); writes
 ``evaluation.json``, ``config_resolved.yaml`` and ``evaluate.log`` (what the console showed) to the run folder.
 ``progress``: a bar with ETA on a terminal, else plain lines every 10 % or 30 s.
 
@@ -110,6 +111,7 @@ def evaluate(cfg: DictConfig) -> dict:
                  f"{packing_line(summary['packing']['expert'])}")
     if planner:
         summary["planner"] = planner
+    summary["played_with"] = played_with(agent.name, train_cfg)
     if cfg.failed_pick_memory is not None:
         summary["failed_pick_memory"] = int(cfg.failed_pick_memory)
     if cfg.q_pick_min_height is not None:
@@ -124,6 +126,24 @@ def evaluate(cfg: DictConfig) -> dict:
     log.info(f"{agent.name} agent on {env_cfg['id']} with {env_cfg['num_objects']} objects: {result}")
     return summary
 
+
+
+# the settings of the greedy decisions that a checkpoint's own config and the overrides decide together
+PLAYED_PLANNER_KEYS = ("name", "num_candidates", "uncertainty_penalty", "empty_picks_last")
+PLAYED_TREE_KEYS = ("depth", "branching")
+
+
+def played_with(agent_name: str, cfg: dict) -> dict:
+    """What the evaluated agent decided with (``cfg``: the config ``load_agent`` built it from): Q's empty-pick
+    mask (m, 0 = off) for an agent with a Q network, and the LDM agent's planner settings."""
+    played = {}
+    if agent_name != "rs":
+        played["q_pick_min_height"] = float(cfg["agent"].get("q_pick_min_height") or 0.0)
+    if agent_name == "ldm":
+        planner = cfg["planner"]
+        keys = PLAYED_PLANNER_KEYS + (PLAYED_TREE_KEYS if planner.get("name") == "tree" else ())
+        played["planner"] = {key: planner[key] for key in keys if planner.get(key) is not None}
+    return played
 
 def world_model(agent):
     """The agent's dynamics model (its planner's, else its LDM loss'), or None (FC-DQN has none)."""

@@ -439,7 +439,9 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
                 "episodes=2", "max_steps=3", f"hydra.run.dir={tmp_path / 'evaluation'}"]
     proc = subprocess.run(evaluate, capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    packing = json.loads((tmp_path / "evaluation" / "evaluation.json").read_text())["packing"]
+    evaluation = json.loads((tmp_path / "evaluation" / "evaluation.json").read_text())
+    assert evaluation["played_with"] == {"q_pick_min_height": 0.0}  # FC-DQN: Q's mask (off), no LDM planner
+    packing = evaluation["packing"]
     assert packing["episodes"] == packing["expert"]["episodes"] == 2
     assert packing["expert"]["mean_blocks_in_bin"] == 1 and packing["expert"]["packed"] == 0  # one place in 3 steps
     assert 0 <= packing["mean_blocks_in_bin"] <= 8 and packing["packed"] == 0

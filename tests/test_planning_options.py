@@ -402,6 +402,14 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015
+    # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1)
+    assert result["played_with"] == {"q_pick_min_height": 0.015, "planner": {
+        "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}}
+    run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
+        f"hydra.run.dir={tmp_path / 'eval_own'}")
+    own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
+    assert "planner" not in own and own["played_with"]["planner"] == {
+        "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.1, "empty_picks_last": True, "depth": 2, "branching": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):
