@@ -127,7 +127,6 @@ def evaluate(cfg: DictConfig) -> dict:
     return summary
 
 
-
 # the settings of the greedy decisions that a checkpoint's own config and the overrides decide together
 PLAYED_PLANNER_KEYS = ("name", "num_candidates", "uncertainty_penalty", "empty_picks_last")
 PLAYED_TREE_KEYS = ("depth", "branching")
@@ -144,6 +143,7 @@ def played_with(agent_name: str, cfg: dict) -> dict:
         keys = PLAYED_PLANNER_KEYS + (PLAYED_TREE_KEYS if planner.get("name") == "tree" else ())
         played["planner"] = {key: planner[key] for key in keys if planner.get(key) is not None}
     return played
+
 
 def world_model(agent):
     """The agent's dynamics model (its planner's, else its LDM loss'), or None (FC-DQN has none)."""
