@@ -111,7 +111,7 @@ def evaluate(cfg: DictConfig) -> dict:
                  f"{packing_line(summary['packing']['expert'])}")
     if planner:
         summary["planner"] = planner
-    summary["played_with"] = played_with(agent.name, train_cfg)
+    summary["played_with"] = played_with(agent, train_cfg)
     if cfg.failed_pick_memory is not None:
         summary["failed_pick_memory"] = int(cfg.failed_pick_memory)
     if cfg.q_pick_min_height is not None:
@@ -127,21 +127,23 @@ def evaluate(cfg: DictConfig) -> dict:
     return summary
 
 
-# the settings of the greedy decisions that a checkpoint's own config and the overrides decide together
-PLAYED_PLANNER_KEYS = ("name", "num_candidates", "uncertainty_penalty", "empty_picks_last")
+# the settings of the greedy decisions that a checkpoint's own config and the overrides decide together, read from
+# the planner as built (a tree selected by override has its constructor's depth and branching, in no config)
+PLAYED_PLANNER_KEYS = ("num_candidates", "uncertainty_penalty", "empty_picks_last")
 PLAYED_TREE_KEYS = ("depth", "branching")
 
 
-def played_with(agent_name: str, cfg: dict) -> dict:
+def played_with(agent, cfg: dict) -> dict:
     """What the evaluated agent decided with (``cfg``: the config ``load_agent`` built it from): Q's empty-pick
     mask (m, 0 = off) for an agent with a Q network, and the LDM agent's planner settings."""
     played = {}
-    if agent_name != "rs":
+    if agent.name != "rs":
         played["q_pick_min_height"] = float(cfg["agent"].get("q_pick_min_height") or 0.0)
-    if agent_name == "ldm":
-        planner = cfg["planner"]
-        keys = PLAYED_PLANNER_KEYS + (PLAYED_TREE_KEYS if planner.get("name") == "tree" else ())
-        played["planner"] = {key: planner[key] for key in keys if planner.get(key) is not None}
+    if agent.name == "ldm":
+        planner = agent.planner
+        name = cfg["planner"].get("name") or "diverse"
+        keys = PLAYED_PLANNER_KEYS + (PLAYED_TREE_KEYS if name == "tree" else ())
+        played["planner"] = {"name": name, **{key: getattr(planner, key) for key in keys}}
     return played
 
 

@@ -347,9 +347,22 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
 
     _, cfg = _composed("agent.gamma=0.8")
     cfg["planner"].update(name="tree", depth=None, branching=None, gamma=None, terminal_reward=None)
-    planner = build_agent(cfg, 0.25).planner
+    agent = build_agent(cfg, 0.25)
+    planner = agent.planner
     assert type(planner) is TreePlanner
     assert (planner.depth, planner.branching, planner.gamma, planner.terminal_reward) == (2, 3, 0.8, 0.1)
+    # and evaluation.json's record of what played names the depth and branching that no config holds
+    import sys
+
+    recipes = str(Path(__file__).resolve().parents[1] / "recipes")
+    sys.path.insert(0, recipes)
+    try:
+        from evaluate import played_with
+    finally:
+        sys.path.remove(recipes)
+    assert played_with(agent, cfg)["planner"] == {"name": "tree", "num_candidates": cfg["planner"]["num_candidates"],
+                                                  "uncertainty_penalty": 0.0, "empty_picks_last": False,
+                                                  "depth": 2, "branching": 3}
 
 
 @pytest.mark.parametrize("overrides, message", [
