@@ -134,8 +134,8 @@ PLAYED_TREE_KEYS = ("depth", "branching")
 
 
 def played_with(agent, cfg: dict) -> dict:
-    """What the evaluated agent decided with (``cfg``: the config ``load_agent`` built it from): Q's empty-pick
-    mask (m, 0 = off) for an agent with a Q network, and the LDM agent's planner settings."""
+    """What the evaluated ``agent`` decided with (``cfg``: the config ``load_agent`` built it from): Q's empty-pick
+    mask (m, 0 = off) for an agent with a Q network, and the LDM agent's planner settings as its planner holds them."""
     played = {}
     if agent.name != "rs":
         played["q_pick_min_height"] = float(cfg["agent"].get("q_pick_min_height") or 0.0)
