@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 
 import hydra
@@ -57,7 +58,8 @@ def evaluate(cfg: DictConfig) -> dict:
     from ldm_rl.agents import load_agent
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.run.checkpoint import CheckpointError
-    from ldm_rl.evaluation import episode_record, evaluate_policy, is_bin_packing, packing_line, packing_report
+    from ldm_rl.evaluation import (episode_record, episode_succeeded, evaluate_policy, is_bin_packing, packing_line,
+                                   packing_report)
     from ldm_rl.seeds import held_out_scenes
     from ldm_rl.run.outputs import atomic_write_text, hydra_output_dir, save_resolved_config
     from ldm_rl.torch_utils import resolve_device, seed_everything, set_threads
@@ -89,9 +91,12 @@ def evaluate(cfg: DictConfig) -> dict:
     returns: list[float] = []
     blocks_in_bin: list[int] | None = [] if is_bin_packing(env) else None
     record = episode_record(env, returns, blocks_in_bin)
+    per_episode: dict[str, list[int]] = {"success": [], "length": []}  # in scene order, for paired comparisons
 
     def on_episode(index, rollout) -> None:
         record(index, rollout)
+        per_episode["success"].append(int(episode_succeeded(rollout)))
+        per_episode["length"].append(int(rollout.shape[0]))
         if index < keep:
             recorded.append(rollout)
 
@@ -118,13 +123,19 @@ def evaluate(cfg: DictConfig) -> dict:
         summary["q_pick_min_height"] = float(cfg.q_pick_min_height)
     if cfg.online_weights:
         summary["online_weights"] = True
+    summary["per_episode"] = per_episode
     if recorded:
         summary["pictures"] = render_episodes(recorded, agent, cfg, hydra_output_dir(), max_height=float(env_cfg["max_height"]),
                                               num_rotations=int(env_cfg["num_rotations"]),
                                               label=f"{agent.name} agent, {env_cfg['id']} ({env_cfg['num_objects']} objects)")
-    atomic_write_text(hydra_output_dir() / "evaluation.json", json.dumps(summary, indent=2))
+    atomic_write_text(hydra_output_dir() / "evaluation.json", one_line_lists(json.dumps(summary, indent=2)))
     log.info(f"{agent.name} agent on {env_cfg['id']} with {env_cfg['num_objects']} objects: {result}")
     return summary
+
+
+def one_line_lists(text: str) -> str:
+    """``json.dumps(..., indent=2)`` output with every list of scalars on one line (per-episode lists stay short)."""
+    return re.sub(r"\[\n\s*([^\[\]{}]*?)\n\s*\]", lambda m: "[" + re.sub(r",\n\s*", ", ", m.group(1)) + "]", text)
 
 
 # the settings of the greedy decisions that a checkpoint's own config and the overrides decide together, read from

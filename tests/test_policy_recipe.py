@@ -69,6 +69,10 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     assert result["ci_low"] <= result["success_rate"] <= result["ci_high"]
     assert "online_weights" not in result  # the averaged weights, what the run's own evaluations played
     assert result["finger_spinning_friction"] == 0.1  # the physics the run was trained on (conf/env)
+    per_episode = result["per_episode"]  # each scene's outcome in order, for paired comparisons of two evaluations
+    assert len(per_episode["success"]) == len(per_episode["length"]) == 2
+    assert sum(per_episode["success"]) == result["successes"]
+    assert sum(per_episode["length"]) / 2 == pytest.approx(result["mean_length"])
 
     # the same training played with its online weights (the run has agent.greedy_ema_decay)
     online = tmp_path / "online"
