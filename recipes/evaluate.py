@@ -107,7 +107,8 @@ def evaluate(cfg: DictConfig) -> dict:
         raise CheckpointError(f"online_weights=true {err}: {path}") from None
     result = evaluate_policy(env, policy, int(cfg.episodes), seed=scenes, progress=bool(cfg.progress),
                              on_episode=on_episode)
-    summary = {"checkpoint": path, "task": env_cfg["id"], "num_objects": env_cfg["num_objects"],
+    summary = {"checkpoint": path, "scene_seed": int(cfg.seed), "task": env_cfg["id"],
+               "num_objects": env_cfg["num_objects"],
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name,
                "finger_spinning_friction": float(env_cfg.get("finger_spinning_friction", 0.0)), **result.as_dict()}
     if blocks_in_bin is not None:  # and the scripted expert on the same scenes

@@ -69,6 +69,7 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     assert result["ci_low"] <= result["success_rate"] <= result["ci_high"]
     assert "online_weights" not in result  # the averaged weights, what the run's own evaluations played
     assert result["finger_spinning_friction"] == 0.1  # the physics the run was trained on (conf/env)
+    assert result["scene_seed"] == 0  # evaluate.py's seed: which held-out scenes were played
     per_episode = result["per_episode"]  # each scene's outcome in order, for paired comparisons of two evaluations
     assert len(per_episode["success"]) == len(per_episode["length"]) == 2
     assert sum(per_episode["success"]) == result["successes"]

@@ -1,0 +1,130 @@
+"""Two ways of playing compared scene by scene: paired counts and McNemar's exact test.
+
+    python -m ldm_rl.reports.paired_evaluations A.json B.json [A2.json B2.json ...] [--labels A B] [--out table.md]
+
+Each pair is two ``evaluation.json`` files of ``recipes/evaluate.py`` that played the same held-out scenes
+(the same task, object count, episodes and ``scene_seed``: evaluate.py's ``seed``), e.g. one checkpoint planned
+two ways (``planner.uncertainty_penalty=0`` against ``=1.0``). Their ``per_episode.success`` lists (0 / 1 per scene, in
+scene order) are paired: scenes both won, only A won, only B won, neither. McNemar's exact test asks whether
+"only A" and "only B" differ by more than chance (two-sided binomial on the discordant scenes, p = 1 with none).
+One row per pair, then the pairs pooled (counts summed: e.g. three seeds' weights, each on the same scenes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from ldm_rl.run.outputs import atomic_write_text
+
+SAME_SCENES = ("task", "num_objects", "episodes", "scene_seed")  # the keys two evaluations must share to be paired
+
+
+@dataclass(frozen=True)
+class Paired:
+    """Paired outcomes of two evaluations on the same scenes."""
+
+    both: int
+    only_a: int
+    only_b: int
+    neither: int
+
+    @property
+    def scenes(self) -> int:
+        return self.both + self.only_a + self.only_b + self.neither
+
+    def __add__(self, other: Paired) -> Paired:
+        return Paired(self.both + other.both, self.only_a + other.only_a, self.only_b + other.only_b,
+                      self.neither + other.neither)
+
+    def mcnemar_p(self) -> float:
+        """Two-sided exact McNemar p-value: P(a split of the discordant scenes at least this uneven | no difference)."""
+        discordant = self.only_a + self.only_b
+        tail = sum(math.comb(discordant, k) for k in range(min(self.only_a, self.only_b) + 1)) / 2 ** discordant
+        return min(1.0, 2 * tail)
+
+
+def pair(a: list[int], b: list[int]) -> Paired:
+    """Paired counts of two per-scene success lists (0 / 1, same scenes in the same order)."""
+    if len(a) != len(b):
+        raise ValueError(f"per-scene lists of different lengths: {len(a)} and {len(b)}")
+    if any(v not in (0, 1) for v in (*a, *b)):
+        raise ValueError("per-scene successes must be 0 or 1")
+    both = sum(x and y for x, y in zip(a, b))
+    only_a = sum(x and not y for x, y in zip(a, b))
+    only_b = sum(y and not x for x, y in zip(a, b))
+    return Paired(both, only_a, only_b, len(a) - both - only_a - only_b)
+
+
+def read(path: Path) -> dict:
+    """One ``evaluation.json`` with its per-scene outcomes."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not a readable evaluation.json ({type(err).__name__}: {err})") from None
+    if "per_episode" not in data:
+        raise ValueError(f"{path}: no per_episode outcomes (written by recipes/evaluate.py from 2026-11-28 on)")
+    missing = [key for key in SAME_SCENES if key not in data]
+    if missing:
+        raise ValueError(f"{path}: lacks {', '.join(missing)}, needed to check that two evaluations played the "
+                         "same scenes")
+    return data
+
+
+def paired_files(path_a: Path, path_b: Path) -> Paired:
+    """Paired counts of two evaluation.json files; refuses two that did not play the same scenes."""
+    a, b = read(path_a), read(path_b)
+    differ = [f"{key} {a[key]!r} vs {b[key]!r}" for key in SAME_SCENES if a[key] != b[key]]
+    if differ:
+        raise ValueError(f"{path_a} and {path_b} played different scenes: {'; '.join(differ)}")
+    return pair(a["per_episode"]["success"], b["per_episode"]["success"])
+
+
+def name(path: Path) -> str:
+    """A file's name in the table: its run folder for an ``evaluation.json``, else its stem."""
+    return path.parent.name if path.name == "evaluation.json" else path.stem
+
+
+def table(rows: list[tuple[str, Paired]], label_a: str, label_b: str) -> str:
+    """Markdown: one row per pair and the pooled row."""
+    lines = [f"| pair | scenes | {label_a} | {label_b} | both | only {label_a} | only {label_b} | neither "
+             "| McNemar p |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for name, p in rows:
+        lines.append(f"| {name} | {p.scenes} | {p.both + p.only_a} | {p.both + p.only_b} | {p.both} | {p.only_a} | "
+                     f"{p.only_b} | {p.neither} | {p.mcnemar_p():.3g} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("files", nargs="+", type=Path, help="evaluation.json files, in pairs: A B [A B ...]")
+    parser.add_argument("--labels", nargs=2, default=["A", "B"], metavar=("A", "B"),
+                        help="names of the two ways of playing")
+    parser.add_argument("--out", type=Path, default=None, help="also write the table to this markdown file")
+    args = parser.parse_args(argv)
+    if len(args.files) % 2:
+        parser.error(f"evaluation.json files come in pairs (A B ...); got {len(args.files)}")
+    try:
+        rows = [(f"{name(a)} / {name(b)}", paired_files(a, b)) for a, b in zip(args.files[::2], args.files[1::2])]
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if len(rows) > 1:
+        pooled = rows[0][1]
+        for _, p in rows[1:]:
+            pooled = pooled + p
+        rows.append(("pooled", pooled))
+    text = table(rows, *args.labels)
+    print(text, end="")
+    if args.out is not None:
+        atomic_write_text(args.out, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

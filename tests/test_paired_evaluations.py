@@ -1,0 +1,88 @@
+"""Paired comparison of two evaluations on the same scenes (ldm_rl.reports.paired_evaluations)."""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+
+import pytest
+
+from ldm_rl.reports.paired_evaluations import Paired, main, pair, paired_files
+
+
+def evaluation(path, successes: list[int], **overrides) -> str:
+    data = {"task": "ldm_rl/BottleArrangement-v0", "num_objects": 4, "episodes": len(successes), "scene_seed": 0,
+            "successes": sum(successes), "per_episode": {"success": successes, "length": [8] * len(successes)}}
+    data.update(overrides)
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+def test_pair_counts_each_kind_of_scene():
+    assert pair([1, 1, 0, 0, 1], [1, 0, 1, 0, 0]) == Paired(both=1, only_a=2, only_b=1, neither=1)
+
+
+def test_mcnemar_exact_values():
+    assert Paired(5, 0, 0, 5).mcnemar_p() == 1.0  # no discordant scene: no evidence either way
+    assert Paired(0, 3, 3, 0).mcnemar_p() == 1.0  # an even split
+    assert Paired(0, 5, 0, 0).mcnemar_p() == pytest.approx(2 / 32)  # 5 of 5 one way: 2 · 0.5^5
+    # 10 discordant scenes split 9 / 1: 2 · (1 + 10) / 1024
+    assert Paired(40, 9, 1, 50).mcnemar_p() == pytest.approx(22 / 1024)
+    assert Paired(40, 1, 9, 50).mcnemar_p() == Paired(40, 9, 1, 50).mcnemar_p()  # symmetric
+
+
+def test_mcnemar_rejects_at_its_level_under_no_difference():
+    """Under no difference (each discordant scene a fair coin) p < 0.05 in at most about 5 % of draws (exact tests
+    are conservative), and a real difference is found most of the time (seeded)."""
+    rng = random.Random(0)
+
+    def rejection_rate(p_only_a: float) -> float:
+        rejected = 0
+        for _ in range(2000):
+            only_a = sum(rng.random() < p_only_a for _ in range(30))
+            rejected += Paired(50, only_a, 30 - only_a, 20).mcnemar_p() < 0.05
+        return rejected / 2000
+
+    assert rejection_rate(0.5) <= 0.06
+    assert rejection_rate(0.85) >= 0.9
+
+
+def test_pair_refuses_unequal_or_non_binary_lists():
+    with pytest.raises(ValueError, match="different lengths: 3 and 2"):
+        pair([1, 0, 1], [1, 0])
+    with pytest.raises(ValueError, match="0 or 1"):
+        pair([1, 2], [1, 0])
+
+
+def test_paired_files_refuses_evaluations_of_other_scenes(tmp_path):
+    a = evaluation(tmp_path / "a.json", [1, 0, 1])
+    b = evaluation(tmp_path / "b.json", [1, 1, 0], scene_seed=1)
+    with pytest.raises(ValueError, match="different scenes: scene_seed 0 vs 1"):
+        paired_files(a, b)
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"task": "t", "num_objects": 4, "episodes": 3, "successes": 2}))
+    with pytest.raises(ValueError, match="no per_episode outcomes"):
+        paired_files(a, old)
+
+
+def test_main_prints_one_row_per_pair_and_the_pooled_row(tmp_path, capsys):
+    files = [evaluation(tmp_path / "s0_plain.json", [1, 0, 0, 1]), evaluation(tmp_path / "s0_lam.json", [1, 1, 1, 0]),
+             evaluation(tmp_path / "s1_plain.json", [0, 0, 1, 1]), evaluation(tmp_path / "s1_lam.json", [1, 1, 1, 1])]
+    out = tmp_path / "paired.md"
+    assert main([*files, "--labels", "plain", "λ", "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("| pair | scenes | plain | λ | both | only plain | only λ |")
+    assert lines[2].startswith("| s0_plain / s0_lam | 4 | 2 | 3 | 1 | 1 | 2 | 0 |")
+    assert lines[3].startswith("| s1_plain / s1_lam | 4 | 2 | 4 | 2 | 0 | 2 | 0 |")
+    pooled = Paired(3, 1, 4, 0)
+    assert lines[4] == f"| pooled | 8 | 4 | 7 | 3 | 1 | 4 | 0 | {pooled.mcnemar_p():.3g} |"
+    assert out.read_text().splitlines() == lines
+    assert math.isclose(pooled.mcnemar_p(), 2 * (1 + 5) / 32)
+
+
+def test_main_refuses_an_odd_number_of_files(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([evaluation(tmp_path / "a.json", [1])])
+    assert exit_info.value.code == 2
+    assert "come in pairs" in capsys.readouterr().err
