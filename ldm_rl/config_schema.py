@@ -517,6 +517,8 @@ class PlannerConfig:
     chunk_size: int = spec(64, ge=1, doc="state-candidate pairs per LDM/V pass")
     autocast: Optional[str] = spec(None, choices=(None, "bf16"), doc="autocast of the Q map and LDM predictions")
     uncertainty_penalty: float = spec(0.0, ge=0.0, doc="λ of the score V − λ·H (H: the LDM's pixel entropy, nats)")
+    greedy_uncertainty_penalty: Optional[float] = spec(None, ge=0.0,
+                                                       doc="λ of the greedy decisions alone (null = uncertainty_penalty)")
     empty_picks_last: bool = spec(False, doc="picks the LDM predicts to come up empty ranked below those predicted to hold")
     # planner=tree only (conf/planner/tree.yaml sets them; null elsewhere)
     depth: Optional[int] = spec(None, ge=1, doc="primitives looked ahead (tree)")
@@ -618,7 +620,7 @@ class TrainPolicyConfig(RunSettings):
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
-        for key in ("empty_picks_last", "uncertainty_penalty"):  # options of the LDM agent's planner alone
+        for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty"):  # the LDM agent's alone
             value = node.planner.get(key)
             if node.agent.name != "ldm" and value:
                 shown = "true" if value is True else _show(value)
@@ -643,7 +645,7 @@ class PlannerOverrides:
 
     name: Optional[str] = spec(None, choices=(None, "diverse", "tree"), doc="the planner")
     num_candidates: Optional[int] = spec(None, ge=1, doc="Q's proposals scored by V (1 = Q's argmax alone)")
-    uncertainty_penalty: Optional[float] = spec(None, ge=0.0, doc="λ of V − λ·H")
+    uncertainty_penalty: Optional[float] = spec(None, ge=0.0, doc="λ of V − λ·H (these greedy decisions' λ)")
     empty_picks_last: Optional[bool] = spec(None, doc="predicted empty picks ranked below those predicted to hold")
     depth: Optional[int] = spec(None, ge=1, doc="tree: primitives looked ahead")
     branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")

@@ -76,7 +76,10 @@ def evaluate(cfg: DictConfig) -> dict:
     save_resolved_config(cfg, hydra_output_dir())
     path = hydra.utils.to_absolute_path(str(cfg.checkpoint))
     planner = {key: value for key, value in cfg.planner.items() if value is not None}
-    agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device), planner=planner,
+    # these decisions are all greedy: an overridden λ is theirs, over a greedy λ the checkpoint's planner may hold
+    greedy = {"greedy_uncertainty_penalty": planner["uncertainty_penalty"]} if "uncertainty_penalty" in planner else {}
+    agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device),
+                                  planner={**planner, **greedy},
                                   q_pick_min_height=cfg.q_pick_min_height)
     env_cfg = dict(train_cfg["env"])
     for key in ("num_objects", "max_steps", "failed_pick_memory"):
@@ -140,8 +143,9 @@ def one_line_lists(text: str) -> str:
 
 
 # the settings of the greedy decisions that a checkpoint's own config and the overrides decide together, read from
-# the planner as built (a tree selected by override has its constructor's depth and branching, in no config)
-PLAYED_PLANNER_KEYS = ("num_candidates", "uncertainty_penalty", "empty_picks_last")
+# the planner as built (a tree selected by override has its constructor's depth and branching, in no config;
+# uncertainty_penalty: the greedy decisions' λ)
+PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last")
 PLAYED_TREE_KEYS = ("depth", "branching")
 
 
@@ -155,7 +159,8 @@ def played_with(agent, cfg: dict) -> dict:
         planner = agent.planner
         name = cfg["planner"].get("name") or "diverse"
         keys = PLAYED_PLANNER_KEYS + (PLAYED_TREE_KEYS if name == "tree" else ())
-        played["planner"] = {"name": name, **{key: getattr(planner, key) for key in keys}}
+        played["planner"] = {"name": name, **{key: getattr(planner, key) for key in keys},
+                             "uncertainty_penalty": planner.penalty(greedy=True)}
     return played
 
 

@@ -119,6 +119,31 @@ def test_the_uncertainty_penalty_scores_v_minus_lambda_entropy(nets):
         LookaheadPlanner(q, dynamics, value, uncertainty_penalty=-0.1)
 
 
+def test_a_greedy_lambda_acts_in_the_greedy_decisions_alone(nets):
+    """greedy_uncertainty_penalty: the greedy decisions are those of a planner with that λ, the exploring draws
+    those of the exploring λ (the same random stream)."""
+    q, dynamics, value = nets
+    split = LookaheadPlanner(q, dynamics, value, uncertainty_penalty=0.0, greedy_uncertainty_penalty=1e6, **GREEDY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        greedy = split(batch())
+        certain = LookaheadPlanner(q, dynamics, value, uncertainty_penalty=1e6, **GREEDY)(batch())
+        plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
+    assert torch.equal(greedy["action"], certain["action"])
+    assert not torch.equal(greedy["action"], plain["action"])  # the greedy λ did change a decision
+    assert torch.equal(greedy["action"], greedy["candidate_actions"][torch.arange(3),
+                                                                   greedy["candidate_entropy"].argmin(-1)])
+    with set_exploration_type(ExplorationType.RANDOM):
+        torch.manual_seed(5)
+        exploring = split(batch())
+        torch.manual_seed(5)
+        exploring_plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
+    assert torch.equal(exploring["action"], exploring_plain["action"])
+    assert split.penalty(greedy=False) == 0.0 and split.penalty(greedy=True) == 1e6
+    assert LookaheadPlanner(q, dynamics, value, uncertainty_penalty=0.2).penalty(greedy=True) == 0.2  # None: the same
+    with pytest.raises(ValueError, match="greedy_uncertainty_penalty must be a number >= 0 .* or None, got -1"):
+        LookaheadPlanner(q, dynamics, value, greedy_uncertainty_penalty=-1)
+
+
 def test_rank_empty_picks_last_sets_only_predicted_empty_picks_of_states_with_a_holding_alternative():
     from ldm_rl.planning.planner import rank_empty_picks_last
 
@@ -373,6 +398,9 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("agent=rs", "planner.empty_picks_last=true"), "planner.empty_picks_last=true is set but agent=rs .* only agent=ldm"),
     (("agent=dynaq", "planner.uncertainty_penalty=0.25"),
      "planner.uncertainty_penalty=0.25 is set but agent=dynaq .* only agent=ldm"),
+    (("agent=fcdqn", "planner.greedy_uncertainty_penalty=1.0"),
+     "planner.greedy_uncertainty_penalty=1.0 is set but agent=fcdqn .* only agent=ldm"),
+    (("planner.greedy_uncertainty_penalty=-2",), "planner.greedy_uncertainty_penalty=-2"),
 ])
 def test_option_misuse_is_one_clear_config_error(overrides, message):
     from ldm_rl.config_schema import SCHEMAS, ConfigError, validate_config
@@ -403,7 +431,8 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
 
     train = tmp_path / "train"
     run("train_policy.py", "experiment=smoke", "planner=tree", "planner.depth=2", "planner.branching=2",
-        "planner.uncertainty_penalty=0.1", "planner.empty_picks_last=true", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
+        "planner.uncertainty_penalty=0.1", "planner.greedy_uncertainty_penalty=0.3", "planner.empty_picks_last=true",
+        "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
         "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1", f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
@@ -415,14 +444,15 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015
-    # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1)
+    # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
+    # an overridden λ is these greedy decisions' λ
     assert result["played_with"] == {"q_pick_min_height": 0.015, "planner": {
         "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
-    assert "planner" not in own and own["played_with"]["planner"] == {
-        "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.1, "empty_picks_last": True, "depth": 2, "branching": 2}
+    assert "planner" not in own and own["played_with"]["planner"] == {  # the checkpoint's greedy λ
+        "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "depth": 2, "branching": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):

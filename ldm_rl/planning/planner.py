@@ -13,9 +13,10 @@ One decision, batched over ``[*B]`` states (paper §3.3–3.4):
 Option (not in the paper, off by default): ``uncertainty_penalty`` λ > 0 scores each candidate by
 ``V(f(s, a)) − λ·H(s, a)``, ``H`` the LDM's mean pixel entropy inside B_a
 (:func:`~ldm_rl.world_model.core.pixel_entropy`, from the logits the lookahead computes anyway): among
-outcomes V rates alike, the planner prefers those its model is sure of (paper §5). ``empty_picks_last``:
-a pick the LDM predicts to leave the hand empty is ranked below every candidate of the same state predicted to
-hold (:func:`rank_empty_picks_last`).
+outcomes V rates alike, the planner prefers those its model is sure of (paper §5); ``greedy_uncertainty_penalty``
+sets another λ for the greedy decisions alone (explore where the model is unsure, act where it is sure).
+``empty_picks_last``: a pick the LDM predicts to leave the hand empty is ranked below every candidate of the same
+state predicted to hold (:func:`rank_empty_picks_last`).
 
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
@@ -81,13 +82,15 @@ class LookaheadPlanner(StatePolicy):
             preset is slower in bf16: measure before enabling).
         write_action_value: also write the ``[*B, R, H, W]`` Q map (``action_value``), 512 KB per state.
         uncertainty_penalty: λ ≥ 0 (V units per nat): candidates are scored ``V − λ·H`` (0 = the paper).
+        greedy_uncertainty_penalty: λ of the greedy decisions (under DETERMINISTIC) when it differs from the
+            exploring one; ``None``: ``uncertainty_penalty`` for both.
         empty_picks_last: picks the LDM predicts to leave the hand empty are scored ``-inf`` where another
             candidate is predicted to hold (:func:`rank_empty_picks_last`; False = the paper).
 
     Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again);
     writes ``action`` ``[*B, 3]``, ``candidate_actions``
     ``[*B, N, 3]``, ``candidate_values`` ``[*B, N]`` (``V(f(s, a))``), ``state_value`` ``[*B, 1]``,
-    ``action_value`` and, with λ > 0, ``candidate_entropy`` ``[*B, N]`` (nats).
+    ``action_value`` and, with either λ > 0, ``candidate_entropy`` ``[*B, N]`` (nats).
     """
 
     def __init__(
@@ -109,13 +112,20 @@ class LookaheadPlanner(StatePolicy):
         autocast: str | None = None,
         write_action_value: bool = True,
         uncertainty_penalty: float = 0.0,
+        greedy_uncertainty_penalty: float | None = None,
         empty_picks_last: bool = False,
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
-        if isinstance(uncertainty_penalty, bool) or not isinstance(uncertainty_penalty, (int, float)) \
-                or not uncertainty_penalty >= 0:
-            raise ValueError(f"uncertainty_penalty must be a number >= 0 (V units per nat), got {uncertainty_penalty!r}")
+        for name, value, allowed in (("uncertainty_penalty", uncertainty_penalty, ""),
+                                     ("greedy_uncertainty_penalty", greedy_uncertainty_penalty, " or None")):
+            if allowed and value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+                raise ValueError(f"{name} must be a number >= 0 (V units per nat){allowed}, got {value!r}")
         self.uncertainty_penalty = float(uncertainty_penalty)
+        self.greedy_uncertainty_penalty = (None if greedy_uncertainty_penalty is None
+                                           else float(greedy_uncertainty_penalty))
+        self.with_entropy = bool(self.uncertainty_penalty or self.greedy_uncertainty_penalty)  # H computed, written
         if not isinstance(empty_picks_last, bool):
             raise ValueError(f"empty_picks_last must be True or False, got {empty_picks_last!r}")
         self.empty_picks_last = empty_picks_last
@@ -138,7 +148,13 @@ class LookaheadPlanner(StatePolicy):
         self.chunk_size, self.write_action_value = int(chunk_size), bool(write_action_value)
         self.out_keys = [keys.ACTION, keys.CANDIDATE_ACTIONS, keys.CANDIDATE_VALUES, keys.STATE_VALUE] + (
             [keys.ACTION_VALUE] if write_action_value else []
-        ) + ([keys.CANDIDATE_ENTROPY] if self.uncertainty_penalty else [])
+        ) + ([keys.CANDIDATE_ENTROPY] if self.with_entropy else [])
+
+    def penalty(self, *, greedy: bool) -> float:
+        """λ of the exploring (``greedy=False``) or the greedy decisions."""
+        if greedy and self.greedy_uncertainty_penalty is not None:
+            return self.greedy_uncertainty_penalty
+        return self.uncertainty_penalty
 
     def hyperparameters(self, *, greedy: bool = False) -> dict[str, float]:
         """The schedules' values (τ, β, σ, σ_rot, τ_v) used when exploring (``greedy=False``, at :attr:`step`)
@@ -165,16 +181,16 @@ class LookaheadPlanner(StatePolicy):
         )
         return q_map, candidates
 
-    def score(self, heightmap, in_hand, holding, candidates, **options):
-        """``(scores [B, N], lookahead result)``: ``V(f(s, a)) − λ·H(s, a)`` of ``candidates`` ``[B, N, 3]``
-        (``-inf`` at predicted empty picks with ``empty_picks_last``); ``options`` go to
+    def score(self, heightmap, in_hand, holding, candidates, penalty: float, **options):
+        """``(scores [B, N], lookahead result)``: ``V(f(s, a)) − λ·H(s, a)`` of ``candidates`` ``[B, N, 3]``,
+        λ = ``penalty`` (``-inf`` at predicted empty picks with ``empty_picks_last``); ``options`` go to
         :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``)."""
         result = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
                            chunk_size=self.chunk_size, dynamics_autocast=self.autocast == "bf16",
-                           with_entropy=bool(self.uncertainty_penalty), **options)
+                           with_entropy=self.with_entropy, **options)
         scores = result.values
-        if self.uncertainty_penalty:
-            scores = scores - self.uncertainty_penalty * result.entropy
+        if penalty:
+            scores = scores - penalty * result.entropy
         if self.empty_picks_last:
             scores = rank_empty_picks_last(scores, holding, result.next_holding)
         return scores, result
@@ -194,10 +210,11 @@ class LookaheadPlanner(StatePolicy):
     def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
         """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]
         [, candidate_entropy][, candidate_scores]}``."""
-        hp = self.hyperparameters(greedy=greedy)
+        hp = {**self.hyperparameters(greedy=greedy), "uncertainty_penalty": self.penalty(greedy=greedy)}
         with eval_mode(self.q_network, self.dynamics, self.value_network):
             q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy, avoid=avoid)
-            scores, result = self.score(heightmap, in_hand, holding, candidates, **self.lookahead_options)
+            scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
+                                        **self.lookahead_options)
             scores = self.backup(result, scores, hp)
             choice = self.choose(scores, hp, greedy=greedy)
             action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
@@ -210,7 +227,7 @@ class LookaheadPlanner(StatePolicy):
         }
         if self.write_action_value:
             out[keys.ACTION_VALUE] = q_map
-        if self.uncertainty_penalty:
+        if self.with_entropy:
             out[keys.CANDIDATE_ENTROPY] = result.entropy
         if keys.CANDIDATE_SCORES in self.out_keys:
             out[keys.CANDIDATE_SCORES] = scores

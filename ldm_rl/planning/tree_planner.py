@@ -91,8 +91,8 @@ class TreePlanner(LookaheadPlanner):
         reward = pick(result.rewards)
         live = (reward <= self.terminal_reward).float()
         node = reward + self.gamma * live * continuation
-        if self.uncertainty_penalty:
-            node = node - self.uncertainty_penalty * pick(result.entropy)
+        if hp["uncertainty_penalty"]:
+            node = node - hp["uncertainty_penalty"] * pick(result.entropy)
         return torch.full_like(scores, float("-inf")).scatter(1, best, node.view(m, k))
 
     def _continuation(self, heightmap, in_hand, holding, remaining: int, hp: dict[str, float]) -> torch.Tensor:
@@ -101,7 +101,8 @@ class TreePlanner(LookaheadPlanner):
         candidates = sample_candidates(q_map, self.num_candidates, beta=hp["beta"], sigma=hp["sigma"],
                                        sigma_rot=hp["sigma_rot"], mode="argmax")
         deeper = remaining > 1
-        scores, result = self.score(heightmap, in_hand, holding, candidates, with_states=deeper, with_reward=deeper)
+        scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
+                                    with_states=deeper, with_reward=deeper)
         if deeper:
             scores = self._expand(result, scores, remaining - 1, hp)
         return scores.amax(1)

@@ -101,7 +101,7 @@ def table(rows: list[tuple[str, Paired]], label_a: str, label_b: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.paired_evaluations", description=__doc__.splitlines()[0])
     parser.add_argument("files", nargs="+", type=Path, help="evaluation.json files, in pairs: A B [A B ...]")
     parser.add_argument("--labels", nargs=2, default=["A", "B"], metavar=("A", "B"),
                         help="names of the two ways of playing")
