@@ -524,7 +524,8 @@ def _differences(a, b, prefix=""):
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
     ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation",
-                                   "agent.q_pick_min_height", "planner.empty_picks_last", "planner.uncertainty_penalty"}),
+                                   "agent.q_pick_min_height", "planner.empty_picks_last", "planner.uncertainty_penalty",
+                                   "planner.greedy_uncertainty_penalty"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
 ])
@@ -562,8 +563,10 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert bottles.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
     # and its predicted empty picks ranked last reach the ldm agent's planner only
     assert bottles.planner.empty_picks_last is (agent == "ldm") and house.planner.empty_picks_last is False
-    # and so does V − λ·H (λ = 0.25 nats⁻¹)
+    # and so does V − λ·H (λ = 0.25 nats⁻¹ exploring, 1.0 in the greedy decisions)
     assert bottles.planner.uncertainty_penalty == (0.25 if agent == "ldm" else 0.0) and house.planner.uncertainty_penalty == 0.0
+    assert bottles.planner.greedy_uncertainty_penalty == (1.0 if agent == "ldm" else None)
+    assert house.planner.greedy_uncertainty_penalty is None
     config_schema.validate_config(bottles, config_schema.TrainPolicyConfig)
     if agent != "rs":
         from ldm_rl.agents import build_agent
@@ -572,3 +575,5 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
         assert built.policy.q_network.pick_min_height == 0.015
         assert getattr(built.policy, "empty_picks_last", False) is (agent == "ldm")
         assert getattr(built.policy, "uncertainty_penalty", 0.0) == (0.25 if agent == "ldm" else 0.0)
+        if agent == "ldm":
+            assert built.policy.penalty(greedy=True) == 1.0 and built.policy.penalty(greedy=False) == 0.25
