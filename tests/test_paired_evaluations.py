@@ -64,6 +64,9 @@ def test_paired_files_refuses_evaluations_of_other_scenes(tmp_path):
     old.write_text(json.dumps({"task": "t", "num_objects": 4, "episodes": 3, "successes": 2}))
     with pytest.raises(ValueError, match="no per_episode outcomes"):
         paired_files(a, old)
+    broken = evaluation(tmp_path / "broken.json", [1, 0, 1], per_episode={"length": [8, 8, 8]})
+    with pytest.raises(ValueError, match="per_episode.success must be a list"):
+        paired_files(a, broken)
 
 
 def test_main_prints_one_row_per_pair_and_the_pooled_row(tmp_path, capsys):

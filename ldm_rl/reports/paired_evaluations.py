@@ -68,6 +68,8 @@ def read(path: Path) -> dict:
         raise ValueError(f"{path}: not a readable evaluation.json ({type(err).__name__}: {err})") from None
     if "per_episode" not in data:
         raise ValueError(f"{path}: no per_episode outcomes (written by recipes/evaluate.py from 2026-11-28 on)")
+    if not isinstance(data["per_episode"], dict) or not isinstance(data["per_episode"].get("success"), list):
+        raise ValueError(f"{path}: per_episode.success must be a list of 0 / 1 per scene")
     missing = [key for key in SAME_SCENES if key not in data]
     if missing:
         raise ValueError(f"{path}: lacks {', '.join(missing)}, needed to check that two evaluations played the "
