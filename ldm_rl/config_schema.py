@@ -166,9 +166,15 @@ class EnvConfig:
     finger_spinning_friction: float = spec(
         0.0, ge=0, doc="torsional friction of the gripper's finger pads (conf/env: 0.1, the anchor's; the default 0 is the "
         "physics of runs before 2026-11-27, whose stored configs lack the key)")
+    progress_reward: float = spec(
+        0.0, ge=0, le=1, doc="bin packing only: reward per block coming to rest in the bin, given back when one "
+        "leaves it or on a failure (0 = off, the paper's sparse reward; ldm_rl.envs.tasks.bin_packing)")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
+        if node.get("progress_reward") and node.id != "ldm_rl/BinPacking-v0":
+            return [f"{prefix}progress_reward={node.progress_reward}: only ldm_rl/BinPacking-v0 has a progress term "
+                    f"(got id {node.id}); set 0"]
         low, high = OBJECT_COUNTS.get(node.id, (1, None))
         allowed = f"exactly {low}" if low == high else f"in {low}..{high}" if high is not None else f"at least {low}"
         counts = [("num_objects", node.num_objects)]

@@ -93,14 +93,19 @@ def is_bin_packing(env) -> bool:
 
 def episode_record(env, returns: list[float], blocks_in_bin: list[int] | None = None) -> Callable[[int, Any], None]:
     """An ``on_episode`` callback for :func:`evaluate_policy` that appends each episode's return to ``returns``
-    and, given ``blocks_in_bin``, the blocks in the bin when the episode ended (bin packing; read from ``env``
-    before its next reset)."""
+    and, given ``blocks_in_bin`` (bin packing), the blocks in the bin when the episode ended; bin packing's
+    ``returns`` then get the pack's reward alone (its last step's ``pack_reward``, without the optional
+    progress term), which :func:`~ldm_rl.envs.tasks.bin_packing.packing_scores` reads. Read from ``env``
+    before its next reset."""
     from ldm_rl.envs.torchrl_env import unwrap
 
     def record(index: int, rollout) -> None:
-        returns.append(float(rollout["next", "reward"].sum()))
-        if blocks_in_bin is not None:
-            blocks_in_bin.append(int(unwrap(env).blocks_in_bin()))
+        if blocks_in_bin is None:
+            returns.append(float(rollout["next", "reward"].sum()))
+            return
+        task = unwrap(env)
+        returns.append(float(task.pack_reward))
+        blocks_in_bin.append(int(task.blocks_in_bin()))
     return record
 
 

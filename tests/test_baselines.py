@@ -417,10 +417,11 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     failed[-1]["next", "reward"].zero_()
     assert not episode_succeeded(failed)  # terminated at 0 reward (an invalid scene) is no success
 
-    # Q on the log scale (agent.q_log_floor), the option meant for this task's small action gaps
+    # Q on the log scale (agent.q_log_floor), the option meant for this task's small action gaps; with the
+    # progress term (env.progress_reward), whose rewards the packing report must leave out
     command = [sys.executable, str(RECIPE), "experiment=smoke", "env=bin_packing", "agent=fcdqn", "agent.q_log_floor=0.01",
-               "schedule.total_episodes=1", "schedule.final_eval_episodes=1", "env.max_steps=3",
-               f"hydra.run.dir={tmp_path}"]
+               "env.progress_reward=0.03", "schedule.total_episodes=1", "schedule.final_eval_episodes=1",
+               "env.max_steps=3", f"hydra.run.dir={tmp_path}"]
     proc = subprocess.run(command, capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     final = json.loads((tmp_path / "final_metrics.json").read_text())
@@ -432,6 +433,8 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     assert 0 <= packing["mean_blocks_in_bin"] <= 8 and 0 <= packing["expert"]["mean_blocks_in_bin"] <= 8
     # 3 primitives cannot pack 8 blocks; the expert's first place puts its first block in the bin
     assert packing["expert"]["mean_blocks_in_bin"] == 1 and packing["expert"]["packed"] == 0
+    # its episode earned the progress term's 0.03 for that block; the report's returns are the pack's alone
+    assert packing["expert"]["mean_return"] == 0.0 and packing["expert"]["mean_return_authors"] == 0.0
     assert "the scripted expert on the same scenes" in proc.stdout + proc.stderr
 
     # recipes/evaluate.py gives the same report for a bin-packing checkpoint (agent and expert, same scenes)

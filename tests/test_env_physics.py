@@ -291,6 +291,42 @@ def test_bin_packing_expert_successes_earn_a_positive_reward_that_falls_with_the
     assert all(r1 > r2 for (_, r1), (_, r2) in zip(results, results[1:]))
 
 
+def test_bin_packing_progress_term_pays_per_block_into_the_bin_and_a_failure_gives_it_back():
+    from ldm_rl.envs.episodes import run_expert_episode
+    from ldm_rl.envs.tasks.bin_packing import pile_reward
+
+    c = 0.03
+    plain = gym.make("ldm_rl/BinPacking-v0").unwrapped
+    env = gym.make("ldm_rl/BinPacking-v0", progress_reward=c).unwrapped
+    try:
+        sparse = run_expert_episode(plain, seed=2)
+        episode = run_expert_episode(env, seed=2)
+        assert len(episode) == len(sparse) and episode[-1].terminated and env.blocks_resting_in_bin() == 8
+        # the same physics: the pack's reward is the sparse reward, the progress term comes on top
+        assert env.pack_reward == pytest.approx(sparse[-1].reward) == pytest.approx(pile_reward(env.pile_top()))
+        assert len(episode) == 16  # the expert: 8 picks from outside the bin (0 each), 8 places into it (c each)
+        assert [t.reward for t in episode[:-1]] == pytest.approx([0.0, c] * 7 + [0.0])
+        assert episode[-1].reward == pytest.approx(env.pack_reward + c)
+        assert sum(t.reward for t in episode) == pytest.approx(env.pack_reward + 8 * c)  # pack + c · blocks at the end
+
+        # taking a block back out of the bin gives its c back; a failure's step gives back all of it
+        env.reset(seed=2)
+        for _ in range(4):
+            env.step(env.expert_action())
+        assert env.blocks_resting_in_bin() == 2 and env.pack_reward == 0.0
+        env._resting_before = 2
+        assert env._reward(False, "") == pytest.approx(0.0)
+        assert env._reward(False, "a block left the workspace") == pytest.approx(-2 * c)
+        env._resting_before = 3
+        assert env._reward(False, "") == pytest.approx(-c)
+        for bad in (-0.1, 1.5, True, "0.1", float("nan")):
+            with pytest.raises(ValueError, match="progress_reward"):
+                gym.make("ldm_rl/BinPacking-v0", progress_reward=bad)
+    finally:
+        env.close()
+        plain.close()
+
+
 def test_resets_do_not_accumulate_bodies():
     env = gym.make("ldm_rl/BottleArrangement-v0", num_objects=5).unwrapped
     try:

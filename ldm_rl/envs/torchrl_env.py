@@ -110,6 +110,9 @@ def env_kwargs_from_config(cfg: Mapping[str, Any], *, training: bool = False) ->
     if isinstance(spin, bool) or not isinstance(spin, (int, float)) or not spin >= 0:
         raise ValueError(f"env.finger_spinning_friction must be a number >= 0, got {spin!r}")
     kwargs["gripper"] = {"finger_spinning_friction": float(spin)}
+    # bin packing's optional progress term (conf/env/bin_packing.yaml); absent or 0: the task's sparse reward
+    if cfg.get("progress_reward"):
+        kwargs["progress_reward"] = cfg["progress_reward"]
     return cfg["id"], kwargs
 
 

@@ -8,6 +8,14 @@ block's centre inside the bin, hand empty) ``MIN_PILE_TOP / max(pile_top, MIN_PI
 lowest pile top a success can have (see ``pile_reward``). So every success earns a reward in (0, 1],
 strictly smaller for taller piles; the noiseless expert's 8-block piles (seeds 0–29: 9.1–12.1 cm)
 earn 0.25–0.33.
+
+Optional progress term (``progress_reward=c`` > 0, off by default; not in the paper): each step also earns
+``c × (change in the number of blocks resting in the bin)`` (the held block not counted), and a failure's
+step gives back all of it (``−c ×`` the blocks resting before it). An episode's undiscounted return is
+then the pack's reward plus ``c ×`` the blocks resting in the bin at its end, and a failure's 0 as without
+the term. A block taken out and put back earns ``−c + γc < 0`` (discounted), so no loop pays; unlike the
+anchor's +0.1 for ending a step holding a block, picking alone earns nothing. ``pack_reward`` keeps the
+task's reward without the term, which the packing report (``packing_scores``) reads.
 """
 
 from __future__ import annotations
@@ -86,7 +94,14 @@ class BinPackingEnv(PickPlaceEnv):
     max_height = 0.15
     pick_depth = 0.012
 
-    def __init__(self, num_objects: int = 8, **kwargs):
+    def __init__(self, num_objects: int = 8, *, progress_reward: float = 0.0, **kwargs):
+        if (isinstance(progress_reward, bool) or not isinstance(progress_reward, (int, float))
+                or not 0 <= progress_reward <= 1):
+            raise ValueError(f"progress_reward must be a number in [0, 1] (reward per block resting in the bin), "
+                             f"got {progress_reward!r}")
+        self.progress_reward = float(progress_reward)
+        self.pack_reward = 0.0  # the last step's pack reward (pile_reward on a success, else 0), no progress term
+        self._resting_before = 0
         super().__init__(num_objects, **kwargs)
         self.bin = ContainerFrame(BIN)
 
@@ -111,12 +126,28 @@ class BinPackingEnv(PickPlaceEnv):
         """Blocks whose centre lies inside the bin (seen from above), the held one included."""
         return sum(self.bin.contains(self.sim.pose(o.body)[0]) for o in self.sim.objects)
 
+    def blocks_resting_in_bin(self) -> int:
+        """Blocks whose centre lies inside the bin (seen from above), the held one excluded."""
+        held = self.gripper.held
+        return sum(self.bin.contains(self.sim.pose(o.body)[0]) for o in self.sim.objects
+                   if held is None or o.body != held.body)
+
     def pile_top(self) -> float:
         """Highest point of any block, m."""
         return float(max(self.sim.aabb(o.body)[1][2] for o in self.sim.objects))
 
+    def step(self, action):
+        if self.progress_reward:
+            self._resting_before = self.blocks_resting_in_bin()
+        return super().step(action)
+
     def _reward(self, success: bool, invalid: str) -> float:
-        return pile_reward(self.pile_top()) if success else 0.0
+        self.pack_reward = pile_reward(self.pile_top()) if success else 0.0
+        if not self.progress_reward:
+            return self.pack_reward
+        if invalid:  # a failure gives back what the episode earned: its return is 0, as without the term
+            return -self.progress_reward * self._resting_before
+        return self.pack_reward + self.progress_reward * (self.blocks_resting_in_bin() - self._resting_before)
 
     # --- expert ----------------------------------------------------------------------------------
     def expert_target(self) -> PrimitiveTarget:
