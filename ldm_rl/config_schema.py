@@ -194,6 +194,10 @@ class HandRuleConfig:
     center_size: int = spec(32, ge=1, le=128, doc="side of the central window of the hand-state rule")
     before_threshold: int = spec(25, ge=0, doc="occupied pixels needed before the action")
     after_threshold: int = spec(25, ge=0, doc="occupied pixels allowed after the action")
+    kind: str = spec("occupancy", choices=("occupancy", "removal"),
+                     doc="occupancy: the reference's rule; removal: a pick holds iff the pixels under the fingers dropped")
+    removal_size: int = spec(12, ge=1, le=128, doc="removal: side of the central window under the fingers")
+    removal_fraction: float = spec(0.5, ge=0, lt=1, doc="removal: fraction of that window that must drop by a class")
 
 
 @dataclass
@@ -672,6 +676,8 @@ class EvaluateConfig(RunSettings):
     finger_spinning_friction: Optional[float] = spec(
         None, ge=0, doc="env.finger_spinning_friction (null = the checkpoint's: 0 for runs before 2026-11-27)")
     q_pick_min_height: Optional[float] = spec(None, ge=0, doc="m: agent.q_pick_min_height (null = the checkpoint's; 0 = off)")
+    hand_rule: Optional[str] = spec(None, choices=(None, "occupancy", "removal"),
+                                    doc="model.hand_rule.kind the world model reads holding' with (null = the checkpoint's)")
     online_weights: bool = spec(False, doc="play the online weights of a run trained with agent.greedy_ema_decay, "
                                            "not their average")
     progress: bool = True

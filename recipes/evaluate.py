@@ -6,6 +6,7 @@
     python recipes/evaluate.py checkpoint=... planner.name=tree            # the same weights, 2 steps ahead
     python recipes/evaluate.py checkpoint=... online_weights=true    # agent.greedy_ema_decay runs: not the average
     python recipes/evaluate.py checkpoint=... q_pick_min_height=0.015   # Q proposes no pick on bare table
+    python recipes/evaluate.py checkpoint=... hand_rule=removal        # the world model reads holding' another way
 
 Rebuilds the agent from the configuration stored in the checkpoint, plays ``episodes`` episodes under
 ``ExplorationType.DETERMINISTIC`` and logs the success rate with a 95 % Wilson interval (bin packing adds
@@ -80,7 +81,7 @@ def evaluate(cfg: DictConfig) -> dict:
     greedy = {"greedy_uncertainty_penalty": planner["uncertainty_penalty"]} if "uncertainty_penalty" in planner else {}
     agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device),
                                   planner={**planner, **greedy},
-                                  q_pick_min_height=cfg.q_pick_min_height)
+                                  q_pick_min_height=cfg.q_pick_min_height, hand_rule=cfg.hand_rule)
     env_cfg = dict(train_cfg["env"])
     for key in ("num_objects", "max_steps", "failed_pick_memory"):
         if cfg[key] is not None:
@@ -123,6 +124,8 @@ def evaluate(cfg: DictConfig) -> dict:
     summary["played_with"] = played_with(agent, train_cfg)
     if cfg.failed_pick_memory is not None:
         summary["failed_pick_memory"] = int(cfg.failed_pick_memory)
+    if cfg.hand_rule is not None:
+        summary["hand_rule"] = str(cfg.hand_rule)
     if cfg.q_pick_min_height is not None:
         summary["q_pick_min_height"] = float(cfg.q_pick_min_height)
     if cfg.online_weights:
@@ -151,7 +154,8 @@ PLAYED_TREE_KEYS = ("depth", "branching")
 
 def played_with(agent, cfg: dict) -> dict:
     """What the evaluated ``agent`` decided with (``cfg``: the config ``load_agent`` built it from): Q's empty-pick
-    mask (m, 0 = off) for an agent with a Q network, and the LDM agent's planner settings as its planner holds them."""
+    mask (m, 0 = off) for an agent with a Q network, the LDM agent's planner settings as its planner holds them, and
+    the hand-state rule of the world model (where the agent has one)."""
     played = {}
     if agent.name != "rs":
         played["q_pick_min_height"] = float(cfg["agent"].get("q_pick_min_height") or 0.0)
@@ -161,6 +165,9 @@ def played_with(agent, cfg: dict) -> dict:
         keys = PLAYED_PLANNER_KEYS + (PLAYED_TREE_KEYS if name == "tree" else ())
         played["planner"] = {"name": name, **{key: getattr(planner, key) for key in keys},
                              "uncertainty_penalty": planner.penalty(greedy=True)}
+    model = world_model(agent)
+    if model is not None:
+        played["hand_rule"] = model.hand_rule.kind
     return played
 
 

@@ -246,6 +246,9 @@ BAD_COMMANDS = [
     ("train_policy.py", ["env=house_building", "env.progress_reward=0.03"],
      "error: env.progress_reward=0.03: only ldm_rl/BinPacking-v0 has a progress term (got id ldm_rl/HouseBuilding-v0); set 0"),
     ("train_policy.py", ["env=bin_packing", "env.progress_reward=2"], "error: env.progress_reward=2.0 is out of range"),
+    ("train_policy.py", ["model.hand_rule.kind=area"], "error: model.hand_rule.kind='area' is invalid: must be one of "
+     "'occupancy', 'removal'"),
+    ("evaluate.py", [f"checkpoint={ROOT / 'README.md'}", "hand_rule=area"], "error: hand_rule='area' is invalid: must be one of"),
     ("evaluate.py", [], "error: checkpoint is missing: set checkpoint=<value> (a checkpoint.pt written by recipes/train_policy.py)"),
     ("evaluate.py", ["checkpoint=runs/typo.pt"], "error: checkpoint='runs/typo.pt' is invalid: must be an existing file"),
     pytest.param("train_policy.py", ["device=cuda"], "error: device=cuda: this machine has no NVIDIA driver",

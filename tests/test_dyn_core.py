@@ -91,6 +91,52 @@ def test_hand_state_rule_on_hand_made_crops():
     assert not strict(with_block(8), empty).item()
 
 
+def test_removal_rule_reads_a_pick_from_a_stack_or_beside_a_neighbour_as_held():
+    """The occupancy rule reads a block taken off a 2-stack, or picked beside a neighbour, as a failed pick (the
+    window stays occupied); the removal rule reads what dropped under the fingers, and never holds after a place."""
+    occupancy, removal = HandStateRule(), HandStateRule(kind="removal")
+    floor = torch.zeros(1, 1, 64, 64, dtype=torch.uint8)
+    two_stack, one_block = floor.clone(), floor.clone()
+    two_stack[..., 26:38, 26:38] = 6
+    one_block[..., 26:38, 26:38] = 3
+    beside = floor.clone()
+    beside[..., 26:38, 26:38] = 3
+    beside[..., 26:38, 40:48] = 3  # a neighbour inside the central 32 x 32, outside the 12 x 12 under the fingers
+    neighbour_only = beside.clone()
+    neighbour_only[..., 26:38, 26:38] = 0
+    pick, place = torch.tensor([True]), torch.tensor([False])
+    for before, after in ((two_stack, one_block), (beside, neighbour_only)):
+        assert not occupancy(before, after).item()
+        assert removal(before, after, pick).item()
+        assert not removal(before, after, place).item()  # a place always opens the hand
+    assert removal(one_block, floor, pick).item() and occupancy(one_block, floor).item()  # the plain pick: both agree
+    assert not removal(one_block, one_block, pick).item()  # nothing moved: a failed pick
+    half = one_block.clone()
+    half[..., 26:32, 26:38] = 0  # half the window under the fingers dropped: not more than 0.5
+    assert not removal(one_block, half, pick).item()
+    assert HandStateRule(kind="removal", removal_fraction=0.4)(one_block, half, pick).item()
+    with pytest.raises(ValueError, match="needs `picking`"):
+        removal(one_block, floor)
+    for bad, message in (({"kind": "area"}, "kind must be one of"), ({"removal_fraction": 1.0}, "removal_fraction"),
+                         ({"removal_size": 0}, "removal_size")):
+        with pytest.raises(ValueError, match=message):
+            HandStateRule(**bad)
+
+
+def test_the_model_reads_holding_with_its_rule_and_the_hand_before():
+    """DynamicsModel passes the hand state before the action to the rule: the same predicted frames give holding'
+    after a pick and never after a place under the removal rule."""
+    model = tiny_model()
+    model.hand_rule = HandStateRule(kind="removal")
+    hm = torch.zeros(2, 1, 128, 128)
+    hm[:, :, 58:70, 58:70] = 0.04
+    action = torch.tensor([[64, 64, 0], [64, 64, 0]])
+    logits = torch.zeros(2, 21, 64, 64)
+    logits[:, 0] = 10.0  # predicted frame: all floor, the block gone
+    pred = model.next_state_from_logits(hm, torch.zeros(2, 1, 24, 24), torch.tensor([[False], [True]]), action, logits)
+    assert pred.holding.reshape(-1).tolist() == [True, False]
+
+
 def test_predicted_in_hand_is_the_centre_of_the_crop_after_a_grasp():
     model = tiny_model()
     hm = torch.zeros(1, 1, 128, 128)

@@ -438,20 +438,21 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
         "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true", "failed_pick_memory=0",
-        "q_pick_min_height=0.015",
+        "q_pick_min_height=0.015", "hand_rule=removal",
         f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}
     assert result["episodes"] == 1
-    assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015
+    assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015 and result["hand_rule"] == "removal"
     # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
     # an overridden λ is these greedy decisions' λ
-    assert result["played_with"] == {"q_pick_min_height": 0.015, "planner": {
+    assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "planner": {
         "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
-    assert "planner" not in own and own["played_with"]["planner"] == {  # the checkpoint's greedy λ
+    assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
+    assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
         "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "depth": 2, "branching": 2}
 
 
@@ -464,6 +465,8 @@ def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(
                                  "config": {"agent": {"name": "fcdqn"}, "planner": {"tau": 0.1}}})
     with pytest.raises(CheckpointError, match="apply to the ldm agent's planner; .* holds agent 'fcdqn'"):
         load_agent(path, planner={"name": "tree"})
+    with pytest.raises(CheckpointError, match="hand_rule='removal' is the world model's; .* holds agent 'fcdqn'"):
+        load_agent(path, hand_rule="removal")
 
 
 def test_a_checkpoint_plays_with_the_empty_pick_mask_set_at_load_and_bad_values_are_refused(tmp_path):

@@ -234,14 +234,15 @@ def build_agent(cfg: Mapping[str, Any], max_height: float):
 
 
 def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mapping[str, Any] | None = None,
-               q_pick_min_height: float | None = None):
+               q_pick_min_height: float | None = None, hand_rule: str | None = None):
     """Rebuild the agent saved by ``recipes/train_policy.py`` at ``path``; returns ``(agent, config)``.
 
     ``preset``: when given, the checkpoint must hold that preset (one clear error otherwise). ``planner``:
     keys set over the checkpoint's planner config (the LDM agent's weights planned another way, e.g.
     ``{"name": "tree", "depth": 2}``; a tree planner's unset keys take :class:`~ldm_rl.planning.TreePlanner`'s
     defaults and the agent's γ). ``q_pick_min_height`` (m): Q's empty-pick mask set over the checkpoint's
-    ``agent.q_pick_min_height`` (0 = off; a setting of the network, not a weight). The returned config holds
+    ``agent.q_pick_min_height`` (0 = off; a setting of the network, not a weight). ``hand_rule``: the world
+    model's ``model.hand_rule.kind`` (``"occupancy"`` | ``"removal"``; a rule, not a weight). The returned config holds
     what was actually built.
     """
     from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint
@@ -263,6 +264,11 @@ def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mappin
             raise CheckpointError(f"q_pick_min_height must be in [0, max_height = {max_height}) metres for {path}, got "
                                   f"{q_pick_min_height!r}")
         cfg = {**cfg, "agent": {**cfg["agent"], "q_pick_min_height": float(q_pick_min_height)}}
+    if hand_rule is not None:
+        if cfg["agent"]["name"] == "fcdqn":
+            raise CheckpointError(f"hand_rule={hand_rule!r} is the world model's; {path} holds agent 'fcdqn', which has none")
+        model = cfg["model"]
+        cfg = {**cfg, "model": {**model, "hand_rule": {**(model.get("hand_rule") or {}), "kind": str(hand_rule)}}}
     agent = build_agent(cfg, float(cfg["env"]["max_height"])).to(device)
     agent.load_policy_state_dict(checkpoint.state["agent"])  # best_policy.pt holds no target copies
     return agent.eval(), cfg

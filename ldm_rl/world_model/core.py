@@ -9,7 +9,7 @@ predicted frame is pasted back inside B_a only (every other pixel is bit-identic
 planes (a Gaussian blob at the action pixel, cos 2θ and sin 2θ); the prediction replaces the whole image.
 
 Next state. heightmap' = pasted ``argmax`` classes converted to metres; holding' by
-:class:`HandStateRule` on the depth classes around the action before vs after; in_hand' = the central
+:class:`HandStateRule` on the depth classes around the action before vs after (and the hand before); in_hand' = the central
 ``hand_size`` crop of the pre-action heightmap at the action when holding' else zeros.
 """
 
@@ -24,34 +24,68 @@ from torch import nn
 from ldm_rl import geometry
 from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet
 
-__all__ = ["HandStateRule", "DynamicsPrediction", "DynamicsModel", "validate_state_action", "pixel_entropy",
+__all__ = ["HandStateRule", "RULE_KINDS", "DynamicsPrediction", "DynamicsModel", "validate_state_action", "pixel_entropy",
            "HEIGHTMAP_SIZE", "HAND_SIZE"]
 
 HEIGHTMAP_SIZE = geometry.HEIGHTMAP_SIZE
 HAND_SIZE = geometry.HAND_SIZE
 
 
+RULE_KINDS = ("occupancy", "removal")
+
+
 @dataclass(frozen=True)
 class HandStateRule:
-    """The reference's hand-state rule on depth classes around the action.
+    """Whether the hand holds an object after the action, read off depth classes around the action.
 
-    ``n(X)`` = number of pixels with class > 0 in the central ``center_size``² window of crop X (taken at
-    the action, rotated by its angle). The hand holds something after the action iff
-    ``n(before) > before_threshold`` and ``n(after) <= after_threshold`` (an object was there and is
-    gone). Applied to picks and places alike (a place leaves the centre occupied, hence False).
+    ``kind="occupancy"`` (the reference's rule, the default): ``n(X)`` = number of pixels with class > 0 in
+    the central ``center_size``² window of crop X (taken at the action, rotated by its angle). The hand
+    holds something after the action iff ``n(before) > before_threshold`` and ``n(after) <= after_threshold``
+    (an object was there and the window is empty now). Applied to picks and places alike (a place leaves
+    the centre occupied, hence False). It misreads every pick that leaves something else in the window: a
+    block taken from a stack's top, an object picked beside a neighbour or the bin's wall.
+
+    ``kind="removal"`` (not in the paper): the hand holds something after a pick iff more than
+    ``removal_fraction`` of the central ``removal_size``² pixels dropped by at least one depth class (the
+    object under the fingers is gone, whatever stays around or below it); after a place never (the env's
+    place always opens the hand). Measured on the true frames of noisy expert transitions (docs/dynamics.md,
+    "The hand-state rule"): it reads every held pick the occupancy rule misses.
     """
 
     center_size: int = 32
     before_threshold: int = 25
     after_threshold: int = 25
+    kind: str = "occupancy"
+    removal_size: int = 12
+    removal_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.kind not in RULE_KINDS:
+            raise ValueError(f"hand_rule.kind must be one of {RULE_KINDS}, got {self.kind!r}")
+        if not 0.0 <= float(self.removal_fraction) < 1.0:
+            raise ValueError(f"hand_rule.removal_fraction must be in [0, 1), got {self.removal_fraction!r}")
+        if int(self.removal_size) < 1:
+            raise ValueError(f"hand_rule.removal_size must be a positive number of pixels, got {self.removal_size!r}")
+
+    @property
+    def window(self) -> int:
+        """Side (pixels) of the crop around the action the rule reads."""
+        return self.center_size if self.kind == "occupancy" else self.removal_size
 
     def count(self, classes: torch.Tensor) -> torch.Tensor:
         """[N, 1, d, d] int classes (d >= center_size) -> [N] int64 occupied-pixel counts."""
         return (geometry.center_crop(classes, self.center_size) > 0).flatten(1).sum(1)
 
-    def __call__(self, before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
-        """[N, 1, d, d] class crops before/after -> [N] bool, predicted holding after the action."""
-        return (self.count(before) > self.before_threshold) & (self.count(after) <= self.after_threshold)
+    def __call__(self, before: torch.Tensor, after: torch.Tensor, picking: torch.Tensor | None = None) -> torch.Tensor:
+        """[N, 1, d, d] class crops centred at the action before/after (d >= :attr:`window`), optional [N]
+        bool ``picking`` (the hand was empty; needed by ``removal``) -> [N] bool, holding after the action."""
+        if self.kind == "occupancy":
+            return (self.count(before) > self.before_threshold) & (self.count(after) <= self.after_threshold)
+        if picking is None:
+            raise ValueError("hand_rule.kind='removal' needs `picking` (the hand state before the action)")
+        drop = geometry.center_crop(before, self.removal_size).long() - geometry.center_crop(after, self.removal_size).long()
+        removed = (drop >= 1).flatten(1).float().mean(1) > self.removal_fraction
+        return removed & picking.reshape(-1).bool()
 
 
 def pixel_entropy(logits: torch.Tensor) -> torch.Tensor:
@@ -165,8 +199,8 @@ class DynamicsModel(nn.Module):
         if net.extra_channels != expected_extra:
             raise ValueError(f"frame={frame!r} needs a net with extra_channels={expected_extra}, got {net.extra_channels}")
         size = crop_size if frame == "local" else HEIGHTMAP_SIZE
-        if size % 16 or not HAND_SIZE <= size <= HEIGHTMAP_SIZE or size < hand_rule.center_size:
-            raise ValueError(f"crop_size must be a multiple of 16 in [{max(HAND_SIZE, hand_rule.center_size)}, {HEIGHTMAP_SIZE}], got {size}")
+        if size % 16 or not HAND_SIZE <= size <= HEIGHTMAP_SIZE or size < hand_rule.window:
+            raise ValueError(f"crop_size must be a multiple of 16 in [{max(HAND_SIZE, hand_rule.window)}, {HEIGHTMAP_SIZE}], got {size}")
         self.net, self.frame, self.frame_size = net, frame, size
         self.max_height, self.num_rotations, self.num_classes = float(max_height), int(num_rotations), net.num_classes
         self.hand_rule, self.hand_crop_mode, self.action_sigma = hand_rule, hand_crop_mode, float(action_sigma)
@@ -224,33 +258,33 @@ class DynamicsModel(nn.Module):
         batch, holding = validate_state_action(heightmap, in_hand, holding, action, self.num_rotations)
         heightmap, in_hand, holding, action = self._flatten(batch, heightmap, in_hand, holding, action)
         logits, frame_before = self._flat_logits(heightmap, in_hand, holding, action)
-        return self._next_state(batch, heightmap, action, logits, frame_before)
+        return self._next_state(batch, heightmap, holding, action, logits, frame_before)
 
     def next_state_from_logits(self, heightmap, in_hand, holding, action, logits) -> DynamicsPrediction:
         """The next state implied by frame ``logits`` ``[*B, K, S, S]`` already computed for this batch
         (e.g. by the training loss' forward pass): no second network pass. Gradients are not tracked."""
-        batch, _ = validate_state_action(heightmap, in_hand, holding, action, self.num_rotations)
+        batch, holding = validate_state_action(heightmap, in_hand, holding, action, self.num_rotations)
         if not torch.is_tensor(logits) or tuple(logits.shape) != (*batch, self.num_classes, self.frame_size, self.frame_size):
             raise _shape_error("logits", f"[*B, {self.num_classes}, {self.frame_size}, {self.frame_size}]", logits)
-        heightmap, _, _, action = self._flatten(batch, heightmap, in_hand, holding, action)
+        heightmap, _, holding, action = self._flatten(batch, heightmap, in_hand, holding, action)
         with torch.no_grad():
-            return self._next_state(batch, heightmap, action, logits.detach().reshape(-1, *logits.shape[len(batch):]))
+            return self._next_state(batch, heightmap, holding, action, logits.detach().reshape(-1, *logits.shape[len(batch):]))
 
-    def _next_state(self, batch, heightmap, action, logits, frame_before=None) -> DynamicsPrediction:
-        """Flat [N] heightmap/action and [N, K, S, S] logits -> the prediction reshaped to ``batch``."""
+    def _next_state(self, batch, heightmap, holding, action, logits, frame_before=None) -> DynamicsPrediction:
+        """Flat [N] heightmap/holding (before)/action and [N, K, S, S] logits -> the prediction reshaped to ``batch``."""
         if frame_before is None:
             frame_before = self.frame_classes(heightmap, action)
         frame_after = channel_argmax(logits).unsqueeze(1).to(torch.uint8)
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
-        size = self.hand_rule.center_size
+        size, picking = self.hand_rule.window, ~holding
         if self.frame == "local":
             patch = self.heights(frame_after).to(heightmap.dtype)
             next_heightmap = geometry.paste(heightmap, patch, centers, angles, mode="nearest")
-            next_holding = self.hand_rule(geometry.center_crop(frame_before, size), geometry.center_crop(frame_after, size))
+            next_holding = self.hand_rule(geometry.center_crop(frame_before, size), geometry.center_crop(frame_after, size), picking)
         else:
             next_heightmap = self.heights(frame_after).to(heightmap.dtype)
             next_holding = self.hand_rule(
-                self.action_region(frame_before, action, size), self.action_region(frame_after, action, size)
+                self.action_region(frame_before, action, size), self.action_region(frame_after, action, size), picking
             )
         grasped = geometry.crop(heightmap, centers, angles, HAND_SIZE, mode=self.hand_crop_mode)
         next_in_hand = torch.where(next_holding.view(-1, 1, 1, 1), grasped, torch.zeros_like(grasped))
