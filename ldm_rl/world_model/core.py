@@ -49,7 +49,7 @@ class HandStateRule:
     ``removal_fraction`` of the central ``removal_size``² pixels dropped by at least one depth class (the
     object under the fingers is gone, whatever stays around or below it); after a place never (the env's
     place always opens the hand). Measured on the true frames of noisy expert transitions (docs/dynamics.md,
-    "The hand-state rule"): it reads every held pick the occupancy rule misses.
+    "The hand-state rule"): it misses 0–3 held picks per task where the occupancy rule misses 0–15.
     """
 
     center_size: int = 32
