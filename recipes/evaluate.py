@@ -96,6 +96,8 @@ def evaluate(cfg: DictConfig) -> dict:
     blocks_in_bin: list[int] | None = [] if is_bin_packing(env) else None
     record = episode_record(env, returns, blocks_in_bin)
     per_episode: dict[str, list[int]] = {"success": [], "length": []}  # in scene order, for paired comparisons
+    if blocks_in_bin is not None:
+        per_episode["blocks_in_bin"] = blocks_in_bin  # bin packing: the blocks in the bin at each episode's end
 
     def on_episode(index, rollout) -> None:
         record(index, rollout)
