@@ -533,7 +533,8 @@ def _differences(a, b, prefix=""):
                                    "agent.q_pick_min_height", "planner.empty_picks_last", "planner.uncertainty_penalty",
                                    "planner.greedy_uncertainty_penalty"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
-    ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit"}),
+    ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit",
+                            "agent.q_pick_min_height"}),
 ])
 def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, task_keys):
     """The comparison's presets share curves_block_stacking's settings; a preset changes only the env and the
@@ -565,8 +566,9 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     config_schema.validate_config(house, config_schema.TrainPolicyConfig)
     bottles = make_cfg("experiment=curves_bottle_arrangement", f"agent={agent}", config_name="train_policy")
     assert bottles.agent.get("value_augmentation") == ("shifts" if agent == "ldm" else None)
-    # the bottles' pick mask reaches every agent with a Q network (rs refuses the key)
+    # the bottles' and bin packing's pick mask reaches every agent with a Q network (rs refuses the key)
     assert bottles.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
+    assert cfg.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
     # and its predicted empty picks ranked last reach the ldm agent's planner only
     assert bottles.planner.empty_picks_last is (agent == "ldm") and house.planner.empty_picks_last is False
     # and so does V − λ·H (λ = 0.25 nats⁻¹ exploring, 1.0 in the greedy decisions)

@@ -1,0 +1,96 @@
+"""Where a run's picks land and which of them held, read from the run's replay (no env, no network).
+
+    python benchmarks/pick_outcomes.py <run> [<run> ...]          # a training run's folder (its replay-* inside)
+
+Every pick in the replay (a transition from an empty hand) is split by who acted (the expert's demonstrations,
+the agent's own episodes: exploration included) and by its outcome (holding after it or not). Per group: how
+many landed on bare surface (the heightmap at the pick pixel not above ``--surface`` m: nothing the fingers can
+close on), and, for the picks on an object, the distance in pixels from the pick to the centroid of the object
+under it (a connected region of pixels above ``--surface``; regions larger than ``--max-region`` px, a
+container's walls, are left out). Then the agent's on-object picks: the share that held per distance band.
+A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from ldm_rl import geometry
+
+BANDS = ((0, 2), (2, 4), (4, 7), (7, 12), (12, 10_000))
+
+
+def load_picks(run: Path) -> dict[str, np.ndarray]:
+    """The picks of ``run``'s newest replay: ``expert``, ``held`` bool [P]; ``height`` m [P] at the pick
+    pixel; ``heightmap`` [P, H, W] float32 m before the pick; ``pixel`` [P, 2] int (row, col)."""
+    replays = sorted(run.glob("replay-*"))
+    if not replays:
+        raise SystemExit(f"no replay-* folder in {run}: pass a training run's folder (hydra.run.dir)")
+    meta = json.loads((replays[-1] / "frame_replay.json").read_text())
+    frames = TensorDict.load_memmap(replays[-1] / "frames")
+    n = int(meta["num_frames"])
+    holding = frames["holding"][:n].reshape(-1).bool()
+    last = frames["is_last"][:n].reshape(-1).bool()
+    picks = torch.nonzero(~last[:-1] & ~holding[:-1]).squeeze(1)
+    maps = geometry.classes_to_heights(frames["heightmap"][picks], meta["max_height"], meta["num_classes"])
+    maps = maps.reshape(len(picks), *maps.shape[-2:]).numpy()
+    pixel = frames["action"][picks][:, :2].long().numpy()
+    return {"expert": frames["is_expert"][picks].reshape(-1).bool().numpy(), "held": holding[picks + 1].numpy(),
+            "height": maps[np.arange(len(picks)), pixel[:, 0], pixel[:, 1]], "heightmap": maps, "pixel": pixel}
+
+
+def centroid_distance(heightmap: np.ndarray, pixel: np.ndarray, surface: float, max_region: int) -> float:
+    """Pixels from ``pixel`` (row, col) to the centroid of the object region under it (nan: none, or too large)."""
+    _, labels = cv2.connectedComponents((heightmap > surface).astype(np.uint8), connectivity=4)
+    label = labels[pixel[0], pixel[1]]
+    if label == 0:
+        return float("nan")
+    rows, cols = np.nonzero(labels == label)
+    if len(rows) > max_region:
+        return float("nan")
+    return float(np.hypot(rows.mean() - pixel[0], cols.mean() - pixel[1]))
+
+
+def report(run: Path, surface: float, max_region: int) -> None:
+    p = load_picks(run)
+    bare = p["height"] <= surface
+    dist = np.array([centroid_distance(m, px, surface, max_region) if not b else np.nan
+                     for m, px, b in zip(p["heightmap"], p["pixel"], bare)])
+    print(f"\n{run} ({len(bare)} picks)")
+    print("| who | outcome | picks | on bare surface | on an object: median px to its centroid |")
+    print("|---|---|---|---|---|")
+    for who, is_expert in (("expert", True), ("agent", False)):
+        for outcome, held in (("held", True), ("empty", False)):
+            m = (p["expert"] == is_expert) & (p["held"] == held)
+            if m.any():
+                d = dist[m & ~np.isnan(dist)]
+                median = f"{np.median(d):.1f}" if len(d) else "-"
+                print(f"| {who} | {outcome} | {int(m.sum())} | {bare[m].mean():.0%} | {median} |")
+    agent = ~p["expert"] & ~np.isnan(dist)
+    bands = []
+    for lo, hi in BANDS:
+        m = agent & (dist >= lo) & (dist < hi)
+        bands.append(f"{lo}–{hi if hi < 10_000 else '∞'} px: {int(p['held'][m].sum())}/{int(m.sum())}")
+    print("agent's picks on an object that held, by distance to its centroid: " + ", ".join(bands))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="training run folders (each with a replay-* folder)")
+    parser.add_argument("--surface", type=float, default=0.012, help="m: a pick pixel not above it is bare surface")
+    parser.add_argument("--max-region", type=int, default=1500, help="px: larger regions are containers, not objects")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    for run in args.runs:
+        report(run, args.surface, args.max_region)
+
+
+if __name__ == "__main__":
+    main()
