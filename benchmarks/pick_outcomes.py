@@ -8,6 +8,10 @@ many landed on bare surface (the heightmap at the pick pixel not above ``--surfa
 close on), and, for the picks on an object, the distance in pixels from the pick to the centroid of the object
 under it (a connected region of pixels above ``--surface``; regions larger than ``--max-region`` px, a
 container's walls, are left out). Then the agent's on-object picks: the share that held per distance band.
+With ``--model``, the run's own world model (its ``checkpoint.pt``) is scored on the same picks on objects: how
+many it predicts to hold under its hand-state rule, and ``p_drop``, its probability that the pixels under the
+fingers drop (the mean over the central 12×12 of the predicted frame of P(class after < class before)), with the
+AUROC of ``p_drop`` against the true outcome on the agent's picks: what the model knows beyond its per-pixel mode.
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -29,7 +33,8 @@ BANDS = ((0, 2), (2, 4), (4, 7), (7, 12), (12, 10_000))
 
 def load_picks(run: Path) -> dict[str, np.ndarray]:
     """The picks of ``run``'s newest replay: ``expert``, ``held`` bool [P]; ``height`` m [P] at the pick
-    pixel; ``heightmap`` [P, H, W] float32 m before the pick; ``pixel`` [P, 2] int (row, col)."""
+    pixel; ``heightmap`` [P, H, W] float32 m before the pick; ``pixel`` [P, 2] int (row, col); ``action``
+    [P, 3] int64; ``hand_size`` (px of the in-hand image)."""
     replays = sorted(run.glob("replay-*"))
     if not replays:
         raise SystemExit(f"no replay-* folder in {run}: pass a training run's folder (hydra.run.dir)")
@@ -41,9 +46,11 @@ def load_picks(run: Path) -> dict[str, np.ndarray]:
     picks = torch.nonzero(~last[:-1] & ~holding[:-1]).squeeze(1)
     maps = geometry.classes_to_heights(frames["heightmap"][picks], meta["max_height"], meta["num_classes"])
     maps = maps.reshape(len(picks), *maps.shape[-2:]).numpy()
-    pixel = frames["action"][picks][:, :2].long().numpy()
+    action = frames["action"][picks].long()
+    pixel = action[:, :2].numpy()
     return {"expert": frames["is_expert"][picks].reshape(-1).bool().numpy(), "held": holding[picks + 1].numpy(),
-            "height": maps[np.arange(len(picks)), pixel[:, 0], pixel[:, 1]], "heightmap": maps, "pixel": pixel}
+            "height": maps[np.arange(len(picks)), pixel[:, 0], pixel[:, 1]], "heightmap": maps, "pixel": pixel,
+            "action": action.numpy(), "hand_size": int(frames["in_hand"].shape[-1])}
 
 
 def centroid_distance(heightmap: np.ndarray, pixel: np.ndarray, surface: float, max_region: int) -> float:
@@ -58,7 +65,40 @@ def centroid_distance(heightmap: np.ndarray, pixel: np.ndarray, surface: float, 
     return float(np.hypot(rows.mean() - pixel[0], cols.mean() - pixel[1]))
 
 
-def report(run: Path, surface: float, max_region: int) -> None:
+def auroc(score: np.ndarray, label: np.ndarray) -> float:
+    """Probability that a random positive scores above a random negative (ties count half); nan without both."""
+    pos, neg = score[label][:, None], score[~label][None, :]
+    if pos.size == 0 or neg.size == 0:
+        return float("nan")
+    return float((pos > neg).mean() + 0.5 * (pos == neg).mean())
+
+
+def model_reading(run: Path, p: dict, rows: np.ndarray, batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The run's world model on the picks ``rows``: (predicted holding [n] bool, p_drop [n] float)."""
+    from ldm_rl.agents import load_agent
+    from ldm_rl.world_model import DynamicsModel
+
+    agent, _ = load_agent(run / "checkpoint.pt")
+    model = next((m for m in agent.modules() if isinstance(m, DynamicsModel)), None)
+    if model is None:
+        raise SystemExit(f"{run}/checkpoint.pt holds agent {agent.name!r}, which has no world model")
+    holds, drops = [], []
+    with torch.no_grad():
+        for start in range(0, len(rows), batch):
+            r = rows[start:start + batch]
+            heightmap = torch.from_numpy(p["heightmap"][r]).unsqueeze(1)
+            action = torch.from_numpy(p["action"][r])
+            empty_hand = torch.zeros_like(heightmap[..., :p["hand_size"], :p["hand_size"]])
+            pred = model.predict(heightmap, empty_hand, torch.zeros(len(r), 1, dtype=torch.bool), action)
+            before = model.frame_classes(heightmap, action).long()  # [n, 1, S, S]
+            prob = torch.softmax(pred.logits.float(), dim=1)  # [n, K, S, S]
+            lower = (prob * (torch.arange(prob.shape[1]).view(1, -1, 1, 1) < before)).sum(1, keepdim=True)
+            drops.append(geometry.center_crop(lower, 12).flatten(1).mean(1).numpy())
+            holds.append(pred.holding.reshape(-1).numpy())
+    return np.concatenate(holds), np.concatenate(drops)
+
+
+def report(run: Path, surface: float, max_region: int, model: bool) -> None:
     p = load_picks(run)
     bare = p["height"] <= surface
     dist = np.array([centroid_distance(m, px, surface, max_region) if not b else np.nan
@@ -79,6 +119,19 @@ def report(run: Path, surface: float, max_region: int) -> None:
         m = agent & (dist >= lo) & (dist < hi)
         bands.append(f"{lo}–{hi if hi < 10_000 else '∞'} px: {int(p['held'][m].sum())}/{int(m.sum())}")
     print("agent's picks on an object that held, by distance to its centroid: " + ", ".join(bands))
+    if model:
+        rows = np.nonzero(~bare)[0]
+        holds, drops = model_reading(run, p, rows)
+        print("\n| picks on an object | count | held | the model predicts held: of the held / of the empty | "
+              "mean p_drop: held / empty | AUROC of p_drop |")
+        print("|---|---|---|---|---|---|")
+        for who, is_expert in (("expert", True), ("agent", False)):
+            m = p["expert"][rows] == is_expert
+            held = p["held"][rows][m]
+            hold, drop = holds[m], drops[m]
+            mean = lambda x: f"{x.mean():.2f}" if x.size else "-"
+            print(f"| {who} | {int(m.sum())} | {int(held.sum())} | {int((hold & held).sum())} / {int((hold & ~held).sum())} | "
+                  f"{mean(drop[held])} / {mean(drop[~held])} | {auroc(drop, held):.2f} |")
 
 
 def main() -> None:
@@ -86,10 +139,11 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path, help="training run folders (each with a replay-* folder)")
     parser.add_argument("--surface", type=float, default=0.012, help="m: a pick pixel not above it is bare surface")
     parser.add_argument("--max-region", type=int, default=1500, help="px: larger regions are containers, not objects")
+    parser.add_argument("--model", action="store_true", help="also score the run's world model on the picks")
     args = parser.parse_args()
     torch.set_num_threads(1)
     for run in args.runs:
-        report(run, args.surface, args.max_region)
+        report(run, args.surface, args.max_region, args.model)
 
 
 if __name__ == "__main__":
