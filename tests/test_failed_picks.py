@@ -126,3 +126,27 @@ def test_the_lookahead_planner_proposes_nothing_near_an_avoided_action():
     d_rot = (cands[..., 2] - taken[..., 2]).remainder(8)
     near_rot = torch.minimum(d_rot, 8 - d_rot) <= 1
     assert not (near_px & near_rot).any() and not torch.equal(second[keys.ACTION], first[keys.ACTION])
+
+
+def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_scores():
+    """benchmarks/pick_outcomes.py: the pick's distance to the centroid of the object under it (nan on bare
+    floor or on a region too large to be an object), and the AUROC of a score against an outcome."""
+    import importlib.util
+    from pathlib import Path
+
+    import numpy as np
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pick_outcomes.py"
+    spec = importlib.util.spec_from_file_location("pick_outcomes", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    heightmap = np.zeros((32, 32), np.float32)
+    heightmap[10:15, 10:15] = 0.03  # a 5×5 px block, centroid (12, 12)
+    assert bench.centroid_distance(heightmap, np.array([12, 14]), 0.012, 1500) == 2.0
+    assert np.isnan(bench.centroid_distance(heightmap, np.array([0, 0]), 0.012, 1500))  # bare floor
+    assert np.isnan(bench.centroid_distance(heightmap, np.array([12, 12]), 0.012, 20))  # a container, not an object
+    label = np.array([True, True, False, False])
+    assert bench.auroc(np.array([0.9, 0.8, 0.1, 0.2]), label) == 1.0
+    assert bench.auroc(np.array([0.1, 0.2, 0.9, 0.8]), label) == 0.0
+    assert bench.auroc(np.array([0.5, 0.5, 0.5, 0.5]), label) == 0.5  # ties count half
+    assert np.isnan(bench.auroc(np.array([0.5, 0.5]), np.array([True, True])))
