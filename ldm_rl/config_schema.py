@@ -402,6 +402,7 @@ class AgentConfig:
     name: str = spec(choices=("ldm", "fcdqn", "rs", "dynaq"), doc="the agent (ldm_rl.agents.AGENTS)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="Q/V size; null = model.preset")
     q_width: Optional[float] = spec(None, gt=0, le=4, doc="Q channel multiplier override")
+    q_head_channels: Optional[int] = spec(None, ge=1, doc="hidden units of Q's pick/place heads (null = 8 scaled by the width)")
     q_frame_margin: int = spec(0, ge=0, lt=32, doc="pixels at each Q gripper frame's edge never proposed (0 = none)")
     q_pick_min_height: float = spec(0.0, ge=0, doc="m: picks on pixels not above it (nothing to grasp) never proposed (0 = none)")
     q_architecture: str = spec("fcn", choices=("fcn", "equivariant"),
@@ -530,6 +531,8 @@ class PlannerConfig:
     greedy_uncertainty_penalty: Optional[float] = spec(None, ge=0.0,
                                                        doc="λ of the greedy decisions alone (null = uncertainty_penalty)")
     empty_picks_last: bool = spec(False, doc="picks the LDM predicts to come up empty ranked below those predicted to hold")
+    pick_outcome: str = spec("mode", choices=("mode", "expected"),
+                             doc="a pick scored by V of the LDM's mode, or by its expected value over held and empty")
     # planner=tree only (conf/planner/tree.yaml sets them; null elsewhere)
     depth: Optional[int] = spec(None, ge=1, doc="primitives looked ahead (tree)")
     branching: Optional[int] = spec(None, ge=1, doc="candidates expanded per node (tree)")
@@ -630,10 +633,10 @@ class TrainPolicyConfig(RunSettings):
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
-        for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty"):  # the LDM agent's alone
+        for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "pick_outcome"):  # the LDM agent's alone
             value = node.planner.get(key)
-            if node.agent.name != "ldm" and value:
-                shown = "true" if value is True else _show(value)
+            if node.agent.name != "ldm" and value and value != "mode":
+                shown = "true" if value is True else value if isinstance(value, str) else _show(value)
                 found.append(f"{prefix}planner.{key}={shown} is set but agent={node.agent.name} does not plan with "
                              "the LDM's proposals: only agent=ldm uses it")
         return found
@@ -657,6 +660,8 @@ class PlannerOverrides:
     num_candidates: Optional[int] = spec(None, ge=1, doc="Q's proposals scored by V (1 = Q's argmax alone)")
     uncertainty_penalty: Optional[float] = spec(None, ge=0.0, doc="λ of V − λ·H (these greedy decisions' λ)")
     empty_picks_last: Optional[bool] = spec(None, doc="predicted empty picks ranked below those predicted to hold")
+    pick_outcome: Optional[str] = spec(None, choices=(None, "mode", "expected"),
+                                       doc="a pick scored by V of the LDM's mode, or by its expected value")
     depth: Optional[int] = spec(None, ge=1, doc="tree: primitives looked ahead")
     branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")
     terminal_reward: Optional[float] = spec(None, gt=0.0, doc="tree: a predicted reward above it ends a branch")

@@ -583,6 +583,15 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
 
         built = build_agent(bottles, float(bottles.env.max_height))
         assert built.policy.q_network.pick_min_height == 0.015
+        # every Q agent's heads keep the reference's 8 hidden units at the curves' width 0.25; a config written
+        # before the key (a checkpoint's) builds the 2 it was trained with, so its weights load
+        assert bottles.agent.q_width == 0.25 and built.policy.q_network.head_channels == 8
+        from omegaconf import OmegaConf
+
+        bottles.logger.exp_name = "run"  # resolved outside a Hydra run
+        older = OmegaConf.to_container(bottles, resolve=True)
+        del older["agent"]["q_head_channels"]
+        assert build_agent(older, float(bottles.env.max_height)).policy.q_network.head_channels == 2
         assert getattr(built.policy, "empty_picks_last", False) is (agent == "ldm")
         assert getattr(built.policy, "uncertainty_penalty", 0.0) == (0.25 if agent == "ldm" else 0.0)
         if agent == "ldm":

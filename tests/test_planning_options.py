@@ -387,7 +387,7 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
         sys.path.remove(recipes)
     assert played_with(agent, cfg)["planner"] == {"name": "tree", "num_candidates": cfg["planner"]["num_candidates"],
                                                   "uncertainty_penalty": 0.0, "empty_picks_last": False,
-                                                  "depth": 2, "branching": 3}
+                                                  "pick_outcome": "mode", "depth": 2, "branching": 3}
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -396,6 +396,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("planner.uncertainty_penalty=-1",), "planner.uncertainty_penalty=-1"),
     (("agent=fcdqn", "agent.target_uncertainty_penalty=0.1"), "only agent=ldm uses it"),
     (("agent=rs", "planner.empty_picks_last=true"), "planner.empty_picks_last=true is set but agent=rs .* only agent=ldm"),
+    (("agent=fcdqn", "planner.pick_outcome=expected"), "planner.pick_outcome=expected is set but agent=fcdqn .* only agent=ldm"),
+    (("planner.pick_outcome=mean",), "planner.pick_outcome"),
     (("agent=dynaq", "planner.uncertainty_penalty=0.25"),
      "planner.uncertainty_penalty=0.25 is set but agent=dynaq .* only agent=ldm"),
     (("agent=fcdqn", "planner.greedy_uncertainty_penalty=1.0"),
@@ -437,23 +439,26 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
-        "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true", "failed_pick_memory=0",
+        "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true",
+        "planner.pick_outcome=expected", "failed_pick_memory=0",
         "q_pick_min_height=0.015", "hand_rule=removal",
         f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
-    assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}
+    assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True,
+                                 "pick_outcome": "expected"}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015 and result["hand_rule"] == "removal"
     # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
     # an overridden λ is these greedy decisions' λ
     assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "planner": {
-        "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True}}
+        "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected"}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
     assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
     assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
-        "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "depth": 2, "branching": 2}
+        "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "pick_outcome": "mode",
+        "depth": 2, "branching": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):
@@ -502,3 +507,95 @@ def test_a_checkpoint_plays_with_the_empty_pick_mask_set_at_load_and_bad_values_
                          meta={**meta, "agent": "rs", "config": {**meta["config"], "agent": {"name": "rs"}}})
     with pytest.raises(CheckpointError, match="q_pick_min_height=0.02 masks a Q network's picks; .* holds agent 'rs'"):
         load_agent(rs, q_pick_min_height=0.02)
+
+
+# ------------------------------------------------------------------------------------- expected pick outcome
+
+
+def _block_and_logits(dynamics, hold: float, action):
+    """A 0.05 m block of 16×16 px centred at (64, 64) and frame logits at ``action`` that drop the block's pixels
+    to the floor with probability ``hold`` and leave every pixel as it was otherwise (all classes' log-probabilities)."""
+    heightmap = torch.zeros(1, 1, 128, 128)
+    heightmap[..., 56:72, 56:72] = 0.05
+    before = dynamics.frame_classes(heightmap, action).long()  # [1, 1, 64, 64]
+    k = dynamics.num_classes
+    probs = torch.full((1, k, 64, 64), 1e-6)
+    probs.scatter_(1, before, 1.0 - hold)
+    on_block = (before > 0).expand(1, k, 64, 64) & (torch.arange(k).view(1, k, 1, 1) == 0)
+    probs = torch.where(on_block, torch.full_like(probs, hold), probs)
+    return heightmap, probs.log()
+
+
+@pytest.mark.parametrize("hold", [0.0, 0.3, 0.8])
+def test_held_outcome_reads_the_pick_probability_and_removes_the_object_the_mode_keeps(nets, hold):
+    _, dynamics, _ = nets
+    action = torch.tensor([[64, 64, 0]])
+    heightmap, logits = _block_and_logits(dynamics, hold, action)
+    held = dynamics.held_outcome(heightmap, action, logits)
+    assert held.probability.shape == (1,) and held.probability.item() == pytest.approx(hold, abs=1e-3)
+    mode = dynamics.next_state_from_logits(heightmap, torch.zeros(1, 1, 24, 24), torch.zeros(1, 1, dtype=torch.bool),
+                                           action, logits)
+    if hold > 0:  # the block's pixels go, every other pixel as it was (at 0 the branch weighs nothing)
+        torch.testing.assert_close(held.heightmap, torch.zeros_like(heightmap))
+    # the mode keeps the likelier outcome only: the block stays below one chance in two
+    torch.testing.assert_close(mode.heightmap, heightmap if hold < 0.5 else torch.zeros_like(heightmap))
+    from ldm_rl import geometry
+    torch.testing.assert_close(held.in_hand, geometry.crop(heightmap, action[:, :2], torch.zeros(1), 24, mode="bilinear"))
+
+
+def test_held_outcome_of_an_off_centre_pick_weighs_the_pixels_under_the_fingers(nets):
+    _, dynamics, _ = nets
+    action = torch.tensor([[64, 72, 0]])  # the 12-px window under the fingers: columns 66..77, half on the block
+    heightmap, logits = _block_and_logits(dynamics, 0.6, action)
+    assert dynamics.held_outcome(heightmap, action, logits).probability.item() == pytest.approx(0.6 * 6 / 12, abs=1e-3)
+    with pytest.raises(ValueError, match=r"logits must be \[1, 21, 64, 64\]"):
+        dynamics.held_outcome(heightmap, action, logits[..., :32])
+
+
+def test_expected_pick_outcome_scores_picks_by_both_branches_and_leaves_places_as_the_mode_scores_them(nets):
+    q, dynamics, value = nets
+    data = scenes(4, seed=3)  # states 0, 2 pick (empty hand), 1, 3 place
+    g = torch.Generator().manual_seed(5)
+    candidates = torch.stack([torch.randint(20, 108, (4, 6), generator=g), torch.randint(20, 108, (4, 6), generator=g),
+                              torch.randint(0, 8, (4, 6), generator=g)], -1)
+    args = (dynamics, value, data["heightmap"], data["in_hand"], data["holding"], candidates)
+    mode = lookahead(*args, chunk_size=5)
+    expected = lookahead(*args, chunk_size=7, pick_outcome="expected", with_states=True)
+    placing = data["holding"].view(4).bool()
+    torch.testing.assert_close(expected.values[placing], mode.values[placing])
+    assert torch.equal(expected.next_holding, mode.next_holding) and (expected.hold_probability[placing] == 0).all()
+    # by hand, one pick state: p·V(held) + (1 − p)·V(s)
+    with torch.no_grad():
+        dynamics.eval(), value.eval()
+        s = {key: data[key][:1].expand(6, *data[key].shape[1:]) for key in ("heightmap", "in_hand", "holding")}
+        logits = dynamics(s["heightmap"], s["in_hand"], s["holding"], candidates[0])
+        held = dynamics.held_outcome(s["heightmap"], candidates[0], logits)
+        want = held.probability * value(held.heightmap, held.in_hand).view(6) + \
+            (1 - held.probability) * value(data["heightmap"][:1], data["in_hand"][:1]).view(1)
+    torch.testing.assert_close(expected.values[0], want)
+    torch.testing.assert_close(expected.hold_probability[0], held.probability)
+    torch.testing.assert_close(expected.next_heightmap[0], held.heightmap)  # the states V scored: the held branch
+    assert not torch.allclose(expected.values[~placing], mode.values[~placing])
+    with pytest.raises(ValueError, match="pick_outcome must be one of .*'mode', 'expected'.*, got 'mean'"):
+        lookahead(*args, pick_outcome="mean")
+    with pytest.raises(ValueError, match="pick_outcome='expected' scores V alone: with_reward"):
+        lookahead(*args, pick_outcome="expected", with_reward=True)
+
+
+def test_the_planner_with_expected_pick_outcomes_chooses_by_them_and_the_tree_refuses_them(nets):
+    q, dynamics, value = nets
+    data = batch(4)
+    planner = LookaheadPlanner(q, dynamics, value, pick_outcome="expected", **GREEDY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = planner(data.clone())
+    with torch.no_grad():
+        again = lookahead(dynamics, value, data["heightmap"], data["in_hand"], data["holding"], out["candidate_actions"],
+                          pick_outcome="expected")
+    torch.testing.assert_close(out["candidate_values"], again.values)
+    best = out["candidate_actions"][torch.arange(4), again.values.argmax(-1)]
+    assert torch.equal(out["action"], best)
+    with pytest.raises(ValueError, match="pick_outcome must be one of"):
+        LookaheadPlanner(q, dynamics, value, pick_outcome="expectation")
+    with pytest.raises(ValueError, match="pick_outcome='expected' is the one-step planner's .*got depth=2"):
+        TreePlanner(q, dynamics, value, gamma=0.9, depth=2, pick_outcome="expected")
+    assert TreePlanner(q, dynamics, value, gamma=0.9, depth=1, pick_outcome="expected").pick_outcome == "expected"

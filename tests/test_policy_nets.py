@@ -412,3 +412,14 @@ def test_constructor_arguments_are_checked():
         QFCN(MAX_HEIGHT, num_rotations=0)
     with pytest.raises(ValueError, match="width"):
         VCNN(MAX_HEIGHT, width=-1.0)
+
+
+def test_head_channels_set_the_heads_hidden_units_and_default_to_eight_scaled_by_the_width():
+    assert build_q_network("lite", max_height=MAX_HEIGHT, width=0.25).head_channels == 2  # runs before the key
+    q = build_q_network("lite", max_height=MAX_HEIGHT, width=0.25, head_channels=8)
+    assert q.pick_head[0].weight.shape[0] == q.place_head[0].weight.shape[0] == 8 == q.place_head[2].weight.shape[1]
+    assert build_q_network("paper", max_height=MAX_HEIGHT).head_channels == 8  # the reference's at width 1
+    for bad in (0, 2.0, True):
+        with pytest.raises(ValueError, match=f"head_channels must be a positive int or None .*got {bad!r}"):
+            QFCN(MAX_HEIGHT, width=0.25, head_channels=bad)
+

@@ -91,6 +91,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"),
                                 frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
                                 pick_min_height=float(agent_cfg.get("q_pick_min_height") or 0.0),
+                                head_channels=agent_cfg.get("q_head_channels"),
                                 architecture=str(agent_cfg.get("q_architecture") or "fcn"), **common)
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"),
                                         termination_head=bool(agent_cfg.get("termination_head", False)), **common)
@@ -128,7 +129,7 @@ def _required(agent_cfg: Mapping[str, Any], name: str, *keys: str) -> list:
 
 
 def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
-    """The Q FCN of ``cfg.agent`` (preset, q_width, q_architecture, q_frame_margin, q_pick_min_height) on the input quantisation of ``cfg.model``."""
+    """The Q FCN of ``cfg.agent`` (preset, q_width, q_head_channels, q_architecture, q_frame_margin, q_pick_min_height) on the input quantisation of ``cfg.model``."""
     from ldm_rl.geometry import NUM_ROTATIONS
     from ldm_rl.models.q_fcn import build_q_network
 
@@ -138,6 +139,7 @@ def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
                            num_rotations=int(model.get("num_rotations", NUM_ROTATIONS)), width=agent_cfg.get("q_width"),
                            frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
                            pick_min_height=float(agent_cfg.get("q_pick_min_height") or 0.0),
+                           head_channels=agent_cfg.get("q_head_channels"),
                            architecture=str(agent_cfg.get("q_architecture") or "fcn"))
 
 

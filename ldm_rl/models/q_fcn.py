@@ -99,8 +99,7 @@ def _bilinear_window(
     return top * (1 - wr) + bottom * wr
 
 
-def _map_head(channels: int, width: float) -> nn.Sequential:
-    hidden = scaled_channels(8, width)
+def _map_head(channels: int, hidden: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(channels, hidden, 3, padding=1), nn.LeakyReLU(LEAKY_SLOPE), nn.Conv2d(hidden, 1, 1))
 
 
@@ -136,8 +135,11 @@ def _channels_last(x: torch.Tensor) -> bool:
     return x.dim() >= 4 and x.shape[-3] > 1 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
 
 
-def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height=0.0) -> None:
+def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height=0.0,
+                      head_channels=None) -> None:
     """The constructor arguments every Q map network takes; one ValueError naming the bad one."""
+    if head_channels is not None and (not isinstance(head_channels, int) or isinstance(head_channels, bool) or head_channels < 1):
+        raise ValueError(f"head_channels must be a positive int or None (the reference's 8 scaled by width), got {head_channels!r}")
     encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
     if not isinstance(num_rotations, int) or isinstance(num_rotations, bool) or num_rotations < 1:
         raise ValueError(f"num_rotations must be a positive int, got {num_rotations!r}")
@@ -221,6 +223,11 @@ class QFCN(CompiledInference, nn.Module):
         pick_min_height: metres; > 0: a pick whose pixel is not above it (nothing to grasp) is ``-inf``
             (:func:`mask_empty_picks`; 0 = none, the reference). Only :meth:`forward` masks: the maps that
             propose actions and take target maxima; :meth:`action_values` (the loss) does not.
+        head_channels: hidden units of the pick and place heads; None: the reference's 8 scaled by ``width``
+            (2 at 0.25). A head's units see non-negative features, so each starts active everywhere or nowhere,
+            and the first updates, raising Q towards the returns, switch off those with a negative output weight:
+            at 2 units the pick head of several runs kept none and its map went flat (docs/policy.md,
+            "Q heads that go flat"); 8 keeps the reference's count at every width.
     """
 
     CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
@@ -230,10 +237,10 @@ class QFCN(CompiledInference, nn.Module):
 
     def __init__(
         self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0,
-        frame_margin: int = 0, pick_min_height: float = 0.0,
+        frame_margin: int = 0, pick_min_height: float = 0.0, head_channels: int | None = None,
     ) -> None:
         super().__init__()
-        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height)
+        check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height, head_channels)
         self.frame_margin, self.pick_min_height = frame_margin, float(pick_min_height)
         self.max_height, self.num_classes = float(max_height), num_classes
         self.num_rotations, self.width = num_rotations, float(width)
@@ -253,7 +260,8 @@ class QFCN(CompiledInference, nn.Module):
         self.up_3 = _UpBlock(c64 + c128, c64)
         self.up_2 = _UpBlock(c32 + c64, c32)
         self.up_1 = _UpBlock(c16 + c32, c16)
-        self.pick_head = _map_head(c16, width)
+        self.head_channels = scaled_channels(8, width) if head_channels is None else head_channels
+        self.pick_head = _map_head(c16, self.head_channels)
 
         hand_convs: list[nn.Module] = []
         for cin, cout in ((1, c32), (c32, c64), (c64, c128), (c128, c256)):
@@ -266,7 +274,7 @@ class QFCN(CompiledInference, nn.Module):
             nn.LeakyReLU(LEAKY_SLOPE),
             nn.Linear(ch(1028), c16 * c16 * 9),
         )
-        self.place_head = _map_head(c16, width)
+        self.place_head = _map_head(c16, self.head_channels)
         self.act = nn.LeakyReLU(LEAKY_SLOPE)
 
         for m in self.modules():
@@ -479,10 +487,13 @@ def build_q_network(
     frame_margin: int = 0,
     architecture: str = "fcn",
     pick_min_height: float = 0.0,
+    head_channels: int | None = None,
 ) -> nn.Module:
     """A Q network at a preset width (``Q_PRESETS``); ``width`` overrides the preset's. ``architecture``
     (``Q_ARCHITECTURES``, ``agent.q_architecture``): ``"fcn"`` a :class:`QFCN`, ``"equivariant"`` an
-    :class:`~ldm_rl.models.equivariant_q.EquivariantQFCN` (the same interface; needs the ``equivariant`` extra)."""
+    :class:`~ldm_rl.models.equivariant_q.EquivariantQFCN` (the same interface; needs the ``equivariant`` extra).
+    ``head_channels``: the QFCN heads' hidden units (None: scaled with the width); the equivariant heads keep their
+    feature fields and ignore it."""
     if preset not in Q_PRESETS:
         raise ValueError(f"unknown Q network preset {preset!r}; expected one of {sorted(Q_PRESETS)}")
     if architecture not in Q_ARCHITECTURES:
@@ -493,4 +504,4 @@ def build_q_network(
         from ldm_rl.models.equivariant_q import EquivariantQFCN  # raises MissingExtraError without e2cnn
 
         return EquivariantQFCN(*args)
-    return QFCN(*args)
+    return QFCN(*args, head_channels=head_channels)

@@ -16,7 +16,9 @@ Option (not in the paper, off by default): ``uncertainty_penalty`` λ > 0 scores
 outcomes V rates alike, the planner prefers those its model is sure of (paper §5); ``greedy_uncertainty_penalty``
 sets another λ for the greedy decisions alone (explore where the model is unsure, act where it is sure).
 ``empty_picks_last``: a pick the LDM predicts to leave the hand empty is ranked below every candidate of the same
-state predicted to hold (:func:`rank_empty_picks_last`).
+state predicted to hold (:func:`rank_empty_picks_last`). ``pick_outcome="expected"``: a pick scores its expected
+value over its two outcomes, ``p·V(s_held) + (1 − p)·V(s)`` (:func:`~ldm_rl.planning.lookahead.lookahead`), where
+the paper's mode calls a pick that holds one time in three "no change".
 
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
@@ -32,7 +34,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from ldm_rl import geometry, keys
-from ldm_rl.planning.lookahead import lookahead
+from ldm_rl.planning.lookahead import PICK_OUTCOMES, lookahead
 from ldm_rl.planning.policy import ScheduleLike, StatePolicy
 from ldm_rl.planning.sampling import mask_actions, sample_candidates
 from ldm_rl.torch_utils import eval_mode
@@ -86,6 +88,8 @@ class LookaheadPlanner(StatePolicy):
             exploring one; ``None``: ``uncertainty_penalty`` for both.
         empty_picks_last: picks the LDM predicts to leave the hand empty are scored ``-inf`` where another
             candidate is predicted to hold (:func:`rank_empty_picks_last`; False = the paper).
+        pick_outcome: ``"mode"`` (the paper: V of the LDM's most likely outcome) or ``"expected"`` (a pick from an
+            empty hand scores ``p·V(s_held) + (1 − p)·V(s)``, ``p`` the LDM's probability that it holds).
 
     Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again);
     writes ``action`` ``[*B, 3]``, ``candidate_actions``
@@ -114,6 +118,7 @@ class LookaheadPlanner(StatePolicy):
         uncertainty_penalty: float = 0.0,
         greedy_uncertainty_penalty: float | None = None,
         empty_picks_last: bool = False,
+        pick_outcome: str = "mode",
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
         for name, value, allowed in (("uncertainty_penalty", uncertainty_penalty, ""),
@@ -129,6 +134,9 @@ class LookaheadPlanner(StatePolicy):
         if not isinstance(empty_picks_last, bool):
             raise ValueError(f"empty_picks_last must be True or False, got {empty_picks_last!r}")
         self.empty_picks_last = empty_picks_last
+        if pick_outcome not in PICK_OUTCOMES:
+            raise ValueError(f"pick_outcome must be one of {PICK_OUTCOMES}, got {pick_outcome!r}")
+        self.pick_outcome = pick_outcome
         self.lookahead_options: dict[str, bool] = {}  # extra lookahead outputs :meth:`backup` reads
         actions = getattr(q_network, "num_rotations", 1) * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
         if not isinstance(num_candidates, int) or isinstance(num_candidates, bool) or not 1 <= num_candidates <= actions:
@@ -187,7 +195,7 @@ class LookaheadPlanner(StatePolicy):
         :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``)."""
         result = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
                            chunk_size=self.chunk_size, dynamics_autocast=self.autocast == "bf16",
-                           with_entropy=self.with_entropy, **options)
+                           with_entropy=self.with_entropy, pick_outcome=self.pick_outcome, **options)
         scores = result.values
         if penalty:
             scores = scores - penalty * result.entropy

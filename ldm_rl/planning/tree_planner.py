@@ -66,6 +66,9 @@ class TreePlanner(LookaheadPlanner):
         if depth > 1 and not hasattr(value_network, "value_and_reward"):
             raise ValueError(f"depth={depth} backs scores up through V's reward head: value_network "
                              f"{type(value_network).__name__} has no value_and_reward")
+        if depth > 1 and self.pick_outcome != "mode":
+            raise ValueError(f"pick_outcome={self.pick_outcome!r} is the one-step planner's (depth=1): the tree backs "
+                             f"up R + γV through one predicted state per candidate; got depth={depth}")
         self.depth, self.branching = depth, branching
         self.lookahead_options = {"with_states": depth > 1, "with_reward": depth > 1}
         self.gamma, self.terminal_reward = float(gamma), float(terminal_reward)

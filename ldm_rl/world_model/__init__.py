@@ -5,7 +5,7 @@ a composed config node). ``DynamicsModel``/``HandStateRule`` import without torc
 (``make_dynamics_module``, ``ForesightTransform``, ``LDMImaginedEnv``) are imported on first use.
 """
 
-from ldm_rl.world_model.core import DynamicsModel, DynamicsPrediction, HandStateRule, pixel_entropy, validate_state_action
+from ldm_rl.world_model.core import DynamicsModel, DynamicsPrediction, HandStateRule, HeldOutcome, pixel_entropy, validate_state_action
 from ldm_rl.world_model.factory import PRESET_WIDTHS, build_dynamics_model, count_parameters, make_dynamics_model
 
 _LAZY = {
@@ -16,7 +16,7 @@ _LAZY = {
     "ImaginedReward": "ldm_rl.world_model.imagined_env",
 }
 
-__all__ = ["DynamicsModel", "DynamicsPrediction", "HandStateRule", "pixel_entropy", "validate_state_action", "make_dynamics_model",
+__all__ = ["DynamicsModel", "DynamicsPrediction", "HandStateRule", "HeldOutcome", "pixel_entropy", "validate_state_action", "make_dynamics_model",
            "build_dynamics_model", "count_parameters", "PRESET_WIDTHS", *_LAZY]
 
 

@@ -24,7 +24,7 @@ from torch import nn
 from ldm_rl import geometry
 from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet
 
-__all__ = ["HandStateRule", "RULE_KINDS", "DynamicsPrediction", "DynamicsModel", "validate_state_action", "pixel_entropy",
+__all__ = ["HandStateRule", "RULE_KINDS", "DynamicsPrediction", "HeldOutcome", "DynamicsModel", "validate_state_action", "pixel_entropy",
            "HEIGHTMAP_SIZE", "HAND_SIZE"]
 
 HEIGHTMAP_SIZE = geometry.HEIGHTMAP_SIZE
@@ -112,6 +112,14 @@ class DynamicsPrediction(NamedTuple):
     def entropy(self) -> torch.Tensor:
         """``[*B]`` float32 nats: :func:`pixel_entropy` of the frame logits (mean pixel entropy inside B_a)."""
         return pixel_entropy(self.logits)
+
+
+class HeldOutcome(NamedTuple):
+    """A pick's held branch (:meth:`DynamicsModel.held_outcome`); leading dims ``*B`` as the inputs."""
+
+    probability: torch.Tensor  # [*B] float32 in [0, 1]: the model's probability that the pick holds
+    heightmap: torch.Tensor  # [*B, 1, 128, 128] float32 metres: the scene should it hold
+    in_hand: torch.Tensor  # [*B, 1, 24, 24] float32 metres: the grasped crop
 
 
 def channel_argmax(logits: torch.Tensor) -> torch.Tensor:
@@ -269,6 +277,44 @@ class DynamicsModel(nn.Module):
         heightmap, _, holding, action = self._flatten(batch, heightmap, in_hand, holding, action)
         with torch.no_grad():
             return self._next_state(batch, heightmap, holding, action, logits.detach().reshape(-1, *logits.shape[len(batch):]))
+
+    def held_outcome(self, heightmap, action, logits) -> HeldOutcome:
+        """A pick's outcome should it hold, from the frame ``logits`` ``[*B, K, S, S]`` already computed for the
+        picks ``action`` ``[*B, 3]`` in ``heightmap`` ``[*B, 1, 128, 128]`` (metres); no network pass.
+
+        The per-pixel distribution mixes a pick's two outcomes, and its mode (:meth:`predict`) keeps the likelier
+        one only: a pick that holds one time in three is predicted to change nothing. Here ``probability`` is the
+        mean, over the central ``hand_rule.removal_size``² pixels at the action, of the model's probability that
+        a pixel's depth class drops (the object under the fingers leaves); the held scene lowers every pixel
+        whose drop probability reaches half of it (the pixels that go with the object) to its likeliest lower
+        class, the other pixels keep the mode; the in-hand image is the grasped crop, as :meth:`predict` gives it.
+        """
+        batch = heightmap.shape[:-3]
+        k, s = self.num_classes, self.frame_size
+        if not torch.is_tensor(logits) or tuple(logits.shape) != (*batch, k, s, s):
+            raise _shape_error("logits", f"[{', '.join(map(str, (*batch, k, s, s)))}] (the frame logits of these picks)", logits)
+        heightmap, action = heightmap.reshape(-1, *heightmap.shape[-3:]), action.reshape(-1, 3).long()
+        logits = logits.reshape(-1, k, s, s).float()
+        before = self.frame_classes(heightmap, action).long()  # [N, 1, S, S]
+        below = torch.arange(k, device=logits.device).view(1, k, 1, 1) < before  # classes under each pixel's
+        p_drop = torch.where(below, torch.softmax(logits, 1), 0.0).sum(1, keepdim=True)  # [N, 1, S, S]
+        size = self.hand_rule.removal_size
+        if self.frame == "local":
+            under_fingers = geometry.center_crop(p_drop, size)
+        else:
+            under_fingers = self.action_region(p_drop, action, size)
+        probability = under_fingers.flatten(1).mean(1).clamp(0.0, 1.0)
+        leaves = (p_drop > 0) & (p_drop >= 0.5 * probability.view(-1, 1, 1, 1))
+        lower = channel_argmax(logits.masked_fill(~below, float("-inf"))).unsqueeze(1)
+        frame = torch.where(leaves, lower, channel_argmax(logits).unsqueeze(1)).to(torch.uint8)
+        centers, angles = geometry.action_to_pose(action, self.num_rotations)
+        if self.frame == "local":
+            held = geometry.paste(heightmap, self.heights(frame).to(heightmap.dtype), centers, angles, mode="nearest")
+        else:
+            held = self.heights(frame).to(heightmap.dtype)
+        in_hand = geometry.crop(heightmap, centers, angles, HAND_SIZE, mode=self.hand_crop_mode)
+        return HeldOutcome(probability.reshape(batch), held.reshape(*batch, *held.shape[1:]),
+                           in_hand.reshape(*batch, *in_hand.shape[1:]))
 
     def _next_state(self, batch, heightmap, holding, action, logits, frame_before=None) -> DynamicsPrediction:
         """Flat [N] heightmap/holding (before)/action and [N, K, S, S] logits -> the prediction reshaped to ``batch``."""
