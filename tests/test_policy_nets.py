@@ -423,3 +423,30 @@ def test_head_channels_set_the_heads_hidden_units_and_default_to_eight_scaled_by
         with pytest.raises(ValueError, match=f"head_channels must be a positive int or None .*got {bad!r}"):
             QFCN(MAX_HEIGHT, width=0.25, head_channels=bad)
 
+
+
+def test_q_heads_benchmark_tells_a_flat_head_from_one_running_on_the_leaky_slope():
+    """benchmarks/q_heads.py: per hidden unit the share of pixels where it is positive, and the map's spread over
+    object pixels: units far below 0 still give a map that varies (slope 0.01), units held at 0 give a flat one."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "q_heads.py"
+    spec = importlib.util.spec_from_file_location("q_heads", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    heightmap, in_hand, _ = q_states(2, seed=3)
+    picking = (heightmap, in_hand, torch.zeros(2, 1, dtype=torch.bool))
+    torch.manual_seed(0)
+    q = build_q_network("lite", max_height=MAX_HEIGHT, width=0.25, head_channels=2).eval()
+    hidden = q.pick_head[0]
+    with torch.no_grad():
+        hidden.bias.fill_(-50.0)  # both units off everywhere, their inputs still weighted
+        shares, spread = bench.head_report(q, picking, 0.015)
+        assert shares == [0.0, 0.0] and spread > 1e-3
+        hidden.weight.zero_()  # off and constant: the map is the output bias plus a constant
+        shares, spread = bench.head_report(q, picking, 0.015)
+        assert shares == [0.0, 0.0] and spread < 1e-5
+        hidden.bias.fill_(1.0)
+        shares, _ = bench.head_report(q, picking, 0.015)
+        assert shares == [1.0, 1.0]

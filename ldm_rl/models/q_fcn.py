@@ -226,8 +226,8 @@ class QFCN(CompiledInference, nn.Module):
         head_channels: hidden units of the pick and place heads; None: the reference's 8 scaled by ``width``
             (2 at 0.25). A head's units see non-negative features, so each starts active everywhere or nowhere,
             and the first updates, raising Q towards the returns, switch off those with a negative output weight:
-            at 2 units the pick head of several runs kept none and its map went flat (docs/policy.md,
-            "Q heads that go flat"); 8 keeps the reference's count at every width.
+            at 2 units a house run's pick head kept none, its pre-activations near 0, and its map went flat
+            (docs/policy.md, "Q heads that go flat"); 8 keeps the reference's count at every width.
     """
 
     CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
