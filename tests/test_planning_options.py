@@ -550,6 +550,12 @@ def test_held_outcome_of_an_off_centre_pick_weighs_the_pixels_under_the_fingers(
     assert dynamics.held_outcome(heightmap, action, logits).probability.item() == pytest.approx(0.6 * 6 / 12, abs=1e-3)
     with pytest.raises(ValueError, match=r"logits must be \[1, 21, 64, 64\]"):
         dynamics.held_outcome(heightmap, action, logits[..., :32])
+    with pytest.raises(ValueError, match="action must be"):
+        dynamics.held_outcome(heightmap, action[:, :2], logits)
+    with pytest.raises(ValueError, match="heightmap must be"):
+        dynamics.held_outcome(heightmap[..., :64], action, logits)
+    with pytest.raises(ValueError, match="action out of range"):
+        dynamics.held_outcome(heightmap, torch.tensor([[64, 200, 0]]), logits)
 
 
 def test_expected_pick_outcome_scores_picks_by_both_branches_and_leaves_places_as_the_mode_scores_them(nets):

@@ -289,7 +289,10 @@ class DynamicsModel(nn.Module):
         whose drop probability reaches half of it (the pixels that go with the object) to its likeliest lower
         class, the other pixels keep the mode; the in-hand image is the grasped crop, as :meth:`predict` gives it.
         """
-        batch = heightmap.shape[:-3]
+        batch = heightmap.shape[:-3] if torch.is_tensor(heightmap) else ()
+        device = heightmap.device if torch.is_tensor(heightmap) else None
+        blank = torch.zeros(*batch, 1, HAND_SIZE, HAND_SIZE, device=device)  # checked as a pick: an empty hand
+        validate_state_action(heightmap, blank, torch.zeros(*batch, 1, dtype=torch.bool, device=device), action, self.num_rotations)
         k, s = self.num_classes, self.frame_size
         if not torch.is_tensor(logits) or tuple(logits.shape) != (*batch, k, s, s):
             raise _shape_error("logits", f"[{', '.join(map(str, (*batch, k, s, s)))}] (the frame logits of these picks)", logits)
