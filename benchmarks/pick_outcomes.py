@@ -7,7 +7,9 @@ the agent's own episodes: exploration included) and by its outcome (holding afte
 many landed on bare surface (the heightmap at the pick pixel not above ``--surface`` m: nothing the fingers can
 close on), and, for the picks on an object, the distance in pixels from the pick to the centroid of the object
 under it (a connected region of pixels above ``--surface``; regions larger than ``--max-region`` px, a
-container's walls, are left out). Then the agent's on-object picks: the share that held per distance band.
+container's walls, are left out). Then the agent's on-object picks: the share that held per distance band, and
+per band of the object's span along the fingers' closing direction (the extent of its region projected on
+``(cos θ, sin θ)``, θ the pick's yaw: docs/conventions.md), in cm beside ``--opening``, the open fingers' gap.
 With ``--model``, the run's own world model (its ``checkpoint.pt``) is scored on the same picks on objects: how
 many it predicts to hold under its hand-state rule, and ``p_drop``, its probability that the pixels under the
 fingers drop (the mean over the central 12×12 of the predicted frame of P(class after < class before)), with the
@@ -29,6 +31,7 @@ from tensordict import TensorDict
 from ldm_rl import geometry
 
 BANDS = ((0, 2), (2, 4), (4, 7), (7, 12), (12, 10_000))
+SPAN_BANDS = ((0.0, 5.0), (5.0, 6.0), (6.0, 7.0), (7.0, 8.5), (8.5, 100.0))  # cm
 
 
 def load_picks(run: Path) -> dict[str, np.ndarray]:
@@ -50,19 +53,39 @@ def load_picks(run: Path) -> dict[str, np.ndarray]:
     pixel = action[:, :2].numpy()
     return {"expert": frames["is_expert"][picks].reshape(-1).bool().numpy(), "held": holding[picks + 1].numpy(),
             "height": maps[np.arange(len(picks)), pixel[:, 0], pixel[:, 1]], "heightmap": maps, "pixel": pixel,
-            "action": action.numpy(), "hand_size": int(frames["in_hand"].shape[-1])}
+            "action": action.numpy(), "hand_size": int(frames["in_hand"].shape[-1]),
+            "num_rotations": _num_rotations(run)}
+
+
+def _num_rotations(run: Path) -> int:
+    """The run's ``env.num_rotations`` (its resolved config)."""
+    from omegaconf import OmegaConf
+
+    return int(OmegaConf.load(run / "config_resolved.yaml").env.num_rotations)
 
 
 def centroid_distance(heightmap: np.ndarray, pixel: np.ndarray, surface: float, max_region: int) -> float:
     """Pixels from ``pixel`` (row, col) to the centroid of the object region under it (nan: none, or too large)."""
+    region = object_region(heightmap, pixel, surface, max_region)
+    if region is None:
+        return float("nan")
+    return float(np.hypot(*(region.mean(0) - pixel)))
+
+
+def object_region(heightmap: np.ndarray, pixel: np.ndarray, surface: float, max_region: int) -> np.ndarray | None:
+    """``[n, 2]`` (row, col) of the object region under ``pixel`` (None: bare surface, or a region too large)."""
     _, labels = cv2.connectedComponents((heightmap > surface).astype(np.uint8), connectivity=4)
     label = labels[pixel[0], pixel[1]]
     if label == 0:
-        return float("nan")
-    rows, cols = np.nonzero(labels == label)
-    if len(rows) > max_region:
-        return float("nan")
-    return float(np.hypot(rows.mean() - pixel[0], cols.mean() - pixel[1]))
+        return None
+    region = np.argwhere(labels == label)
+    return region if len(region) <= max_region else None
+
+
+def closing_span(region: np.ndarray, angle: float) -> float:
+    """Pixels the region spans along the closing direction ``(cos angle, sin angle)`` (rows, cols), edges included."""
+    projection = region @ np.array([np.cos(angle), np.sin(angle)])
+    return float(projection.max() - projection.min() + 1.0)
 
 
 def auroc(score: np.ndarray, label: np.ndarray) -> float:
@@ -98,7 +121,8 @@ def model_reading(run: Path, p: dict, rows: np.ndarray, batch: int = 64) -> tupl
     return np.concatenate(holds), np.concatenate(drops)
 
 
-def report(run: Path, surface: float, max_region: int, model: bool) -> None:
+def report(run: Path, surface: float, max_region: int, model: bool, opening: float = 0.07,
+           resolution: float = 0.003125) -> None:
     p = load_picks(run)
     bare = p["height"] <= surface
     dist = np.array([centroid_distance(m, px, surface, max_region) if not b else np.nan
@@ -119,6 +143,21 @@ def report(run: Path, surface: float, max_region: int, model: bool) -> None:
         m = agent & (dist >= lo) & (dist < hi)
         bands.append(f"{lo}–{hi if hi < 10_000 else '∞'} px: {int(p['held'][m].sum())}/{int(m.sum())}")
     print("agent's picks on an object that held, by distance to its centroid: " + ", ".join(bands))
+    angles = p["action"][:, 2] * np.pi / p["num_rotations"]
+    span = np.full(len(bare), np.nan)
+    for i in np.nonzero(~np.isnan(dist))[0]:
+        region = object_region(p["heightmap"][i], p["pixel"][i], surface, max_region)
+        span[i] = closing_span(region, angles[i]) * resolution * 100 if region is not None else np.nan
+    print(f"\n| picks on an object, by its span along the closing direction (cm; open fingers {opening * 100:.1f}) | "
+          + " | ".join(f"{lo:g}–{hi:g}" if hi < 100 else f"≥ {lo:g}" for lo, hi in SPAN_BANDS) + " |")
+    print("|---" * (len(SPAN_BANDS) + 1) + "|")
+    for who, is_expert in (("expert", True), ("agent", False)):
+        m = (p["expert"] == is_expert) & ~np.isnan(span)
+        cells = []
+        for lo, hi in SPAN_BANDS:
+            b = m & (span >= lo) & (span < hi)
+            cells.append(f"{int(p['held'][b].sum())} / {int(b.sum())}")
+        print(f"| {who}: held / picks | " + " | ".join(cells) + " |")
     if model:
         rows = np.nonzero(~bare)[0]
         holds, drops = model_reading(run, p, rows)
@@ -132,6 +171,13 @@ def report(run: Path, surface: float, max_region: int, model: bool) -> None:
             mean = lambda x: f"{x.mean():.2f}" if x.size else "-"
             print(f"| {who} | {int(m.sum())} | {int(held.sum())} | {int((hold & held).sum())} / {int((hold & ~held).sum())} | "
                   f"{mean(drop[held])} / {mean(drop[~held])} | {auroc(drop, held):.2f} |")
+        agent_rows = ~p["expert"][rows]
+        cells = []
+        for lo, hi in SPAN_BANDS:
+            b = agent_rows & (span[rows] >= lo) & (span[rows] < hi)
+            cells.append(f"{drops[b].mean():.2f} ({int(b.sum())})" if b.any() else "-")
+        print("\nthe agent's picks, mean p_drop by span along the closing direction (cm): "
+              + ", ".join(f"{lo:g}–{hi:g}: {c}" for (lo, hi), c in zip(SPAN_BANDS, cells)))
 
 
 def main() -> None:
@@ -140,10 +186,11 @@ def main() -> None:
     parser.add_argument("--surface", type=float, default=0.012, help="m: a pick pixel not above it is bare surface")
     parser.add_argument("--max-region", type=int, default=1500, help="px: larger regions are containers, not objects")
     parser.add_argument("--model", action="store_true", help="also score the run's world model on the picks")
+    parser.add_argument("--opening", type=float, default=0.07, help="m: the open fingers' gap (the env's gripper: 7 cm)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     for run in args.runs:
-        report(run, args.surface, args.max_region, args.model)
+        report(run, args.surface, args.max_region, args.model, args.opening)
 
 
 if __name__ == "__main__":

@@ -130,7 +130,8 @@ def test_the_lookahead_planner_proposes_nothing_near_an_avoided_action():
 
 def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_scores():
     """benchmarks/pick_outcomes.py: the pick's distance to the centroid of the object under it (nan on bare
-    floor or on a region too large to be an object), and the AUROC of a score against an outcome."""
+    floor or on a region too large to be an object), the object's span along the fingers' closing direction,
+    and the AUROC of a score against an outcome."""
     import importlib.util
     from pathlib import Path
 
@@ -145,6 +146,13 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     assert bench.centroid_distance(heightmap, np.array([12, 14]), 0.012, 1500) == 2.0
     assert np.isnan(bench.centroid_distance(heightmap, np.array([0, 0]), 0.012, 1500))  # bare floor
     assert np.isnan(bench.centroid_distance(heightmap, np.array([12, 12]), 0.012, 20))  # a container, not an object
+    brick = np.zeros((32, 32), np.float32)
+    brick[10:15, 4:17] = 0.03  # 5 rows × 13 columns
+    region = bench.object_region(brick, np.array([12, 10]), 0.012, 1500)
+    assert bench.closing_span(region, 0.0) == 5.0  # fingers closing along the rows: across the short side
+    assert bench.closing_span(region, np.pi / 2) == pytest.approx(13.0)  # along the columns: its length
+    assert bench.closing_span(region, np.pi / 4) == pytest.approx(16 / np.sqrt(2) + 1)
+    assert bench.object_region(brick, np.array([0, 0]), 0.012, 1500) is None
     label = np.array([True, True, False, False])
     assert bench.auroc(np.array([0.9, 0.8, 0.1, 0.2]), label) == 1.0
     assert bench.auroc(np.array([0.1, 0.2, 0.9, 0.8]), label) == 0.0
