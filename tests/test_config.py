@@ -534,7 +534,7 @@ def _differences(a, b, prefix=""):
                                    "planner.greedy_uncertainty_penalty"}),
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit",
-                            "agent.q_pick_min_height", "model.hand_rule.kind"}),
+                            "agent.q_pick_min_height", "model.hand_rule.kind", "env.failed_pick_memory"}),
 ])
 def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, task_keys):
     """The comparison's presets share curves_block_stacking's settings; a preset changes only the env and the
@@ -571,6 +571,8 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert cfg.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
     # bin packing's hand-state rule is the task's (experiment file), the other presets keep the reference's
     assert cfg.model.hand_rule.kind == "removal" and bottles.model.hand_rule.kind == house.model.hand_rule.kind == "occupancy"
+    # bin packing's failed-pick memory is the task's too (every agent), the other presets leave it off
+    assert cfg.env.failed_pick_memory == 8 and bottles.env.failed_pick_memory == house.env.failed_pick_memory == 0
     # and its predicted empty picks ranked last reach the ldm agent's planner only
     assert bottles.planner.empty_picks_last is (agent == "ldm") and house.planner.empty_picks_last is False
     # and so does V − λ·H (λ = 0.25 nats⁻¹ exploring, 1.0 in the greedy decisions)
