@@ -125,8 +125,9 @@ def report(run: Path, surface: float, max_region: int, model: bool, opening: flo
            resolution: float = 0.003125) -> None:
     p = load_picks(run)
     bare = p["height"] <= surface
-    dist = np.array([centroid_distance(m, px, surface, max_region) if not b else np.nan
-                     for m, px, b in zip(p["heightmap"], p["pixel"], bare)])
+    regions = [None if b else object_region(m, px, surface, max_region)
+               for m, px, b in zip(p["heightmap"], p["pixel"], bare)]
+    dist = np.array([np.nan if r is None else float(np.hypot(*(r.mean(0) - px))) for r, px in zip(regions, p["pixel"])])
     print(f"\n{run} ({len(bare)} picks)")
     print("| who | outcome | picks | on bare surface | on an object: median px to its centroid |")
     print("|---|---|---|---|---|")
@@ -144,10 +145,7 @@ def report(run: Path, surface: float, max_region: int, model: bool, opening: flo
         bands.append(f"{lo}–{hi if hi < 10_000 else '∞'} px: {int(p['held'][m].sum())}/{int(m.sum())}")
     print("agent's picks on an object that held, by distance to its centroid: " + ", ".join(bands))
     angles = p["action"][:, 2] * np.pi / p["num_rotations"]
-    span = np.full(len(bare), np.nan)
-    for i in np.nonzero(~np.isnan(dist))[0]:
-        region = object_region(p["heightmap"][i], p["pixel"][i], surface, max_region)
-        span[i] = closing_span(region, angles[i]) * resolution * 100 if region is not None else np.nan
+    span = np.array([np.nan if r is None else closing_span(r, a) * resolution * 100 for r, a in zip(regions, angles)])
     print(f"\n| picks on an object, by its span along the closing direction (cm; open fingers {opening * 100:.1f}) | "
           + " | ".join(f"{lo:g}–{hi:g}" if hi < 100 else f"≥ {lo:g}" for lo, hi in SPAN_BANDS) + " |")
     print("|---" * (len(SPAN_BANDS) + 1) + "|")
@@ -188,6 +186,8 @@ def main() -> None:
     parser.add_argument("--model", action="store_true", help="also score the run's world model on the picks")
     parser.add_argument("--opening", type=float, default=0.07, help="m: the open fingers' gap (the env's gripper: 7 cm)")
     args = parser.parse_args()
+    if not args.opening > 0:
+        parser.error(f"--opening must be a positive gap in metres (the env's gripper: 0.07), got {args.opening!r}")
     torch.set_num_threads(1)
     for run in args.runs:
         report(run, args.surface, args.max_region, args.model, args.opening)
