@@ -533,6 +533,7 @@ class PlannerConfig:
     empty_picks_last: bool = spec(False, doc="picks the LDM predicts to come up empty ranked below those predicted to hold")
     pick_outcome: str = spec("mode", choices=("mode", "expected"),
                              doc="a pick scored by V of the LDM's mode, or by its expected value over held and empty")
+    pick_rotations: int = spec(1, ge=1, doc="rotations each pick proposal is scored at (divides env.num_rotations)")
     # planner=tree only (conf/planner/tree.yaml sets them; null elsewhere)
     depth: Optional[int] = spec(None, ge=1, doc="primitives looked ahead (tree)")
     branching: Optional[int] = spec(None, ge=1, doc="candidates expanded per node (tree)")
@@ -633,12 +634,17 @@ class TrainPolicyConfig(RunSettings):
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
-        for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "pick_outcome"):  # the LDM agent's alone
+        for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "pick_outcome",
+                    "pick_rotations"):  # the LDM agent's alone
             value = node.planner.get(key)
-            if node.agent.name != "ldm" and value and value != "mode":
+            if node.agent.name != "ldm" and value and value != "mode" and not (key == "pick_rotations" and value == 1):
                 shown = "true" if value is True else value if isinstance(value, str) else _show(value)
                 found.append(f"{prefix}planner.{key}={shown} is set but agent={node.agent.name} does not plan with "
                              "the LDM's proposals: only agent=ldm uses it")
+        sweep, rotations = node.planner.get("pick_rotations"), node.env.num_rotations
+        if isinstance(sweep, int) and sweep >= 1 and rotations % sweep:
+            found.append(f"{prefix}planner.pick_rotations={sweep} must divide env.num_rotations={rotations}: the swept "
+                         "rotations are evenly spaced bins of Q's map")
         return found
 
 
@@ -662,6 +668,7 @@ class PlannerOverrides:
     empty_picks_last: Optional[bool] = spec(None, doc="predicted empty picks ranked below those predicted to hold")
     pick_outcome: Optional[str] = spec(None, choices=(None, "mode", "expected"),
                                        doc="a pick scored by V of the LDM's mode, or by its expected value")
+    pick_rotations: Optional[int] = spec(None, ge=1, doc="rotations each pick proposal is scored at")
     depth: Optional[int] = spec(None, ge=1, doc="tree: primitives looked ahead")
     branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")
     terminal_reward: Optional[float] = spec(None, gt=0.0, doc="tree: a predicted reward above it ends a branch")

@@ -15,7 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from ldm_rl.objectives import LookaheadLoss
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.planner import LookaheadPlanner
-from ldm_rl.planning.sampling import sample_candidates
+from ldm_rl.planning.sampling import mask_actions, near_actions, sample_candidates, sweep_rotations
 from ldm_rl.planning.tree_planner import TreePlanner
 from ldm_rl.world_model import pixel_entropy
 from ldm_rl.world_model.metrics import MetricSettings, auroc
@@ -192,6 +192,85 @@ def test_the_planner_with_empty_picks_last_never_chooses_a_predicted_empty_pick_
     assert chose_empty.any()  # V alone chose an empty pick somewhere: the option changed that decision
     with pytest.raises(ValueError, match="empty_picks_last must be True or False, got 1"):
         LookaheadPlanner(q, dynamics, value, empty_picks_last=1)
+
+
+# ------------------------------------------------------------------------------------------- pick rotations
+
+
+def test_sweep_rotations_spreads_each_pick_proposal_over_pi_and_repeats_the_others():
+    g = torch.Generator().manual_seed(0)
+    r, k, n = 8, 4, 5
+    rows = torch.arange(n).repeat(3, 1) * 20 + torch.randint(0, 10, (3, 1), generator=g)  # ≥ 10 px apart
+    candidates = torch.stack([rows, torch.randint(0, 128, (3, n), generator=g), torch.randint(0, r, (3, n), generator=g)], -1)
+    active = torch.tensor([True, False, True])
+    swept = sweep_rotations(candidates, r, k, active=active).view(3, n, k, 3)
+    assert torch.equal(swept[..., 0, :], candidates)  # each block starts with its proposal
+    assert torch.equal(swept[..., :2], candidates[:, :, None, :2].expand(3, n, k, 2))  # the pixel never moves
+    offsets = (swept[..., 2] - candidates[..., None, 2]).remainder(r)
+    assert torch.equal(offsets[0], torch.tensor([0, 2, 4, 6]).expand(n, k)) and torch.equal(offsets[2], offsets[0])
+    assert (offsets[1] == 0).all()  # an inactive row: every proposal K times, unchanged
+    # a swept rotation near an action to avoid falls back to the proposal itself
+    avoid = torch.full((3, 1, 3), -1)
+    avoid[0, 0] = swept[0, 1, 2]  # the second proposal's third rotation
+    again = sweep_rotations(candidates, r, k, active=active, avoid=avoid).view(3, n, k, 3)
+    assert torch.equal(again[0, 1, 2], candidates[0, 1])
+    assert torch.equal(again[0, 1], torch.cat((swept[0, 1, :2], candidates[0, 1:2], swept[0, 1, 3:])))  # 2 bins off: kept
+    assert torch.equal(again[1:], swept[1:]) and torch.equal(again[0, ::2], swept[0, ::2])
+    for bad in (3, 0, True):
+        with pytest.raises(ValueError, match=f"sweep must be an int >= 1 dividing num_rotations=8, got {bad!r}"):
+            sweep_rotations(candidates, r, bad, active=active)
+
+
+def test_near_actions_marks_exactly_the_entries_mask_actions_removes():
+    g = torch.Generator().manual_seed(1)
+    others = torch.stack([torch.randint(0, 32, (2, 4), generator=g), torch.randint(0, 32, (2, 4), generator=g),
+                          torch.randint(0, 8, (2, 4), generator=g)], -1)
+    others[1, 2:] = -1  # rows with -1 are ignored
+    actions = torch.stack([torch.randint(0, 32, (2, 400), generator=g), torch.randint(0, 32, (2, 400), generator=g),
+                           torch.randint(0, 8, (2, 400), generator=g)], -1)
+    masked = torch.isinf(mask_actions(torch.zeros(2, 8, 32, 32), others))
+    want = masked[torch.arange(2)[:, None], actions[..., 2], actions[..., 0], actions[..., 1]]
+    got = near_actions(actions, others, 8)
+    assert torch.equal(got, want) and want.any() and (~want).any()
+
+
+class CountingModel(nn.Module):
+    """The tiny LDM, counting the (state, action) pairs it predicts."""
+
+    def __init__(self, dynamics):
+        super().__init__()
+        self.inner, self.pairs = dynamics, 0
+
+    def predict(self, heightmap, in_hand, holding, actions):
+        self.pairs += len(actions)
+        return self.inner.predict(heightmap, in_hand, holding, actions)
+
+
+def test_the_planner_with_pick_rotations_scores_every_swept_pick_and_each_place_proposal_once(nets):
+    q, dynamics, value = nets
+    options = dict(GREEDY, num_candidates=4)
+    plain = LookaheadPlanner(q, dynamics, value, **options)
+    counted = CountingModel(dynamics)
+    swept = LookaheadPlanner(q, counted, value, pick_rotations=4, **options)
+    data = batch(4)  # picks at rows 0 and 2, places at rows 1 and 3
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        before, after = plain(data.clone()), swept(data.clone())
+    assert counted.pairs == 2 * 16 + 2 * 4  # the places' copies are not predicted again
+    actions, values = after["candidate_actions"], after["candidate_values"]
+    assert actions.shape == (4, 16, 3) and values.shape == (4, 16)
+    assert torch.equal(actions, sweep_rotations(before["candidate_actions"], q.num_rotations, 4,
+                                                active=~data["holding"].view(-1)))
+    # a place state's proposals: the plain planner's, each repeated (and predicted) once per copy
+    torch.testing.assert_close(values[1::2], before["candidate_values"][1::2].repeat_interleave(4, dim=1))
+    # a pick state's: every swept action scored as the lookahead scores it alone
+    picks = data[0::2]
+    alone = lookahead(dynamics, value, picks["heightmap"], picks["in_hand"], picks["holding"], actions[0::2])
+    torch.testing.assert_close(values[0::2], alone.values)
+    assert torch.equal(after["action"], actions[torch.arange(4), values.argmax(-1)])
+    assert (after["action"][0::2] != before["action"][0::2]).any()  # the sweep changed a decision
+    for bad in (3, 0, 16):
+        with pytest.raises(ValueError, match=f"pick_rotations must be an int >= 1 dividing Q's num_rotations=8, got {bad}"):
+            LookaheadPlanner(q, dynamics, value, pick_rotations=bad)
 
 
 def test_the_target_uncertainty_penalty_lowers_each_bootstrap_by_lambda_entropy():
@@ -387,7 +466,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
         sys.path.remove(recipes)
     assert played_with(agent, cfg)["planner"] == {"name": "tree", "num_candidates": cfg["planner"]["num_candidates"],
                                                   "uncertainty_penalty": 0.0, "empty_picks_last": False,
-                                                  "pick_outcome": "mode", "depth": 2, "branching": 3}
+                                                  "pick_outcome": "mode", "pick_rotations": 1, "depth": 2,
+                                                  "branching": 3}
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -403,6 +483,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("agent=fcdqn", "planner.greedy_uncertainty_penalty=1.0"),
      "planner.greedy_uncertainty_penalty=1.0 is set but agent=fcdqn .* only agent=ldm"),
     (("planner.greedy_uncertainty_penalty=-2",), "planner.greedy_uncertainty_penalty=-2"),
+    (("planner.pick_rotations=3",), r"planner.pick_rotations=3 must divide env.num_rotations=8"),
+    (("agent=fcdqn", "planner.pick_rotations=2"), "planner.pick_rotations=2 is set but agent=fcdqn .* only agent=ldm"),
 ])
 def test_option_misuse_is_one_clear_config_error(overrides, message):
     from ldm_rl.config_schema import SCHEMAS, ConfigError, validate_config
@@ -414,7 +496,7 @@ def test_option_misuse_is_one_clear_config_error(overrides, message):
 
 @pytest.mark.slow
 def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_planner(tmp_path):
-    """CI smoke: a tiny training run with the tree planner, both entropy penalties, the failed-pick memory,
+    """CI smoke: a tiny training run with the tree planner, both entropy penalties, swept pick rotations, the failed-pick memory,
     2- or 3-block training scenes and Q fitted on its proposals, then recipes/evaluate.py
     planning its weights with planner overrides (written into evaluation.json)."""
     import json
@@ -434,31 +516,32 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     train = tmp_path / "train"
     run("train_policy.py", "experiment=smoke", "planner=tree", "planner.depth=2", "planner.branching=2",
         "planner.uncertainty_penalty=0.1", "planner.greedy_uncertainty_penalty=0.3", "planner.empty_picks_last=true",
-        "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
+        "planner.pick_rotations=2", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
         "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1", f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
         "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true",
-        "planner.pick_outcome=expected", "failed_pick_memory=0",
+        "planner.pick_outcome=expected", "planner.pick_rotations=4", "failed_pick_memory=0",
         "q_pick_min_height=0.015", "hand_rule=removal",
         f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True,
-                                 "pick_outcome": "expected"}
+                                 "pick_outcome": "expected", "pick_rotations": 4}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015 and result["hand_rule"] == "removal"
     # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
     # an overridden λ is these greedy decisions' λ
     assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "planner": {
-        "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected"}}
+        "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected",
+        "pick_rotations": 4}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
     assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
     assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
         "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "pick_outcome": "mode",
-        "depth": 2, "branching": 2}
+        "pick_rotations": 2, "depth": 2, "branching": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):

@@ -18,7 +18,10 @@ sets another λ for the greedy decisions alone (explore where the model is unsur
 ``empty_picks_last``: a pick the LDM predicts to leave the hand empty is ranked below every candidate of the same
 state predicted to hold (:func:`rank_empty_picks_last`). ``pick_outcome="expected"``: a pick scores its expected
 value over its two outcomes, ``p·V(s_held) + (1 − p)·V(s)`` (:func:`~ldm_rl.planning.lookahead.lookahead`), where
-the paper's mode calls a pick that holds one time in three "no change".
+the paper's mode calls a pick that holds one time in three "no change". ``pick_rotations`` K > 1: each pick
+proposal is also scored at K − 1 more rotations of its pixel, evenly spaced over π
+(:func:`~ldm_rl.planning.sampling.sweep_rotations`), so the LDM — not Q alone — chooses how the fingers close on
+what Q points at (N·K candidates; a place decision's N proposals are scored once and repeated K times).
 
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
@@ -34,9 +37,9 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from ldm_rl import geometry, keys
-from ldm_rl.planning.lookahead import PICK_OUTCOMES, lookahead
+from ldm_rl.planning.lookahead import PICK_OUTCOMES, LookaheadResult, lookahead
 from ldm_rl.planning.policy import ScheduleLike, StatePolicy
-from ldm_rl.planning.sampling import mask_actions, sample_candidates
+from ldm_rl.planning.sampling import mask_actions, sample_candidates, sweep_rotations
 from ldm_rl.torch_utils import eval_mode
 
 __all__ = ["LookaheadPlanner", "rank_empty_picks_last"]
@@ -61,6 +64,24 @@ def rank_empty_picks_last(scores: torch.Tensor, holding: torch.Tensor, next_hold
                          f"{tuple(scores.shape)}, {tuple(next_holding.shape)} and {tuple(holding.shape)}")
     empty = ~holding.reshape(-1, 1).bool() & ~next_holding.bool()
     return scores.masked_fill(empty & (~empty).any(dim=1, keepdim=True), float("-inf"))
+
+
+def _repeat_result(result: LookaheadResult, k: int) -> LookaheadResult:
+    """Every ``[B, N, ...]`` field of ``result`` with each candidate repeated ``k`` times: ``[B, N·K, ...]``."""
+    return LookaheadResult(*(None if x is None else x.repeat_interleave(k, dim=1) for x in result))
+
+
+def _merge_results(first: LookaheadResult, first_rows: torch.Tensor, second: LookaheadResult,
+                   second_rows: torch.Tensor) -> LookaheadResult:
+    """One result over the states ``first_rows`` ∪ ``second_rows`` (``[B1]``, ``[B2]`` int64, a partition of
+    ``0 … B1 + B2 − 1``) from the results of each part."""
+    def merge(a, b):
+        if a is None:
+            return None
+        out = a.new_empty((len(first_rows) + len(second_rows), *a.shape[1:]))
+        return out.index_copy_(0, first_rows, a).index_copy_(0, second_rows, b)
+
+    return LookaheadResult(*(merge(a, b) for a, b in zip(first, second)))
 
 
 class LookaheadPlanner(StatePolicy):
@@ -90,10 +111,11 @@ class LookaheadPlanner(StatePolicy):
             candidate is predicted to hold (:func:`rank_empty_picks_last`; False = the paper).
         pick_outcome: ``"mode"`` (the paper: V of the LDM's most likely outcome) or ``"expected"`` (a pick from an
             empty hand scores ``p·V(s_held) + (1 − p)·V(s)``, ``p`` the LDM's probability that it holds).
+        pick_rotations: K, rotations each pick proposal is scored at (an int dividing Q's R; 1 = the paper).
 
     Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again);
     writes ``action`` ``[*B, 3]``, ``candidate_actions``
-    ``[*B, N, 3]``, ``candidate_values`` ``[*B, N]`` (``V(f(s, a))``), ``state_value`` ``[*B, 1]``,
+    ``[*B, N·K, 3]``, ``candidate_values`` ``[*B, N·K]`` (K = ``pick_rotations``) (``V(f(s, a))``), ``state_value`` ``[*B, 1]``,
     ``action_value`` and, with either λ > 0, ``candidate_entropy`` ``[*B, N]`` (nats).
     """
 
@@ -119,6 +141,7 @@ class LookaheadPlanner(StatePolicy):
         greedy_uncertainty_penalty: float | None = None,
         empty_picks_last: bool = False,
         pick_outcome: str = "mode",
+        pick_rotations: int = 1,
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
         for name, value, allowed in (("uncertainty_penalty", uncertainty_penalty, ""),
@@ -138,7 +161,13 @@ class LookaheadPlanner(StatePolicy):
             raise ValueError(f"pick_outcome must be one of {PICK_OUTCOMES}, got {pick_outcome!r}")
         self.pick_outcome = pick_outcome
         self.lookahead_options: dict[str, bool] = {}  # extra lookahead outputs :meth:`backup` reads
-        actions = getattr(q_network, "num_rotations", 1) * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
+        self.num_rotations = getattr(q_network, "num_rotations", 1)
+        if isinstance(pick_rotations, bool) or not isinstance(pick_rotations, int) or pick_rotations < 1 \
+                or self.num_rotations % pick_rotations:
+            raise ValueError(f"pick_rotations must be an int >= 1 dividing Q's num_rotations={self.num_rotations}, "
+                             f"got {pick_rotations!r}")
+        self.pick_rotations = pick_rotations
+        actions = self.num_rotations * geometry.HEIGHTMAP_SIZE**2  # entries of one Q map
         if not isinstance(num_candidates, int) or isinstance(num_candidates, bool) or not 1 <= num_candidates <= actions:
             raise ValueError(f"num_candidates must be an int in [1, {actions}] (the Q map's rotations x pixels), "
                              f"got {num_candidates!r}")
@@ -179,23 +208,41 @@ class LookaheadPlanner(StatePolicy):
                                  f"[1, {size}, {size}] metres), got {shape}")
 
     def propose(self, heightmap, in_hand, holding, hp: dict[str, float], *, greedy: bool, avoid=None):
-        """``(Q map [B, R, H, W], candidates [B, N, 3])`` of flat states (networks already in eval mode);
-        no candidate lies near one of ``avoid`` ``[B, M, 3]`` (:func:`~ldm_rl.planning.sampling.mask_actions`)."""
+        """``(Q map [B, R, H, W], candidates [B, N·K, 3])`` of flat states (networks already in eval mode; K =
+        ``pick_rotations``, :func:`~ldm_rl.planning.sampling.sweep_rotations` at the picks); no candidate lies near
+        one of ``avoid`` ``[B, M, 3]`` (:func:`~ldm_rl.planning.sampling.mask_actions`)."""
         with torch.autocast(heightmap.device.type, dtype=torch.bfloat16, enabled=self.autocast == "bf16"):
             q_map = self.q_network(heightmap, in_hand, holding).float()
         candidates = sample_candidates(
             q_map if avoid is None else mask_actions(q_map, avoid), self.num_candidates, tau=hp["tau"], beta=hp["beta"], sigma=hp["sigma"],
             sigma_rot=hp["sigma_rot"], mode=self.greedy_proposal if greedy else self.proposal,
         )
+        if self.pick_rotations > 1:
+            candidates = sweep_rotations(candidates, self.num_rotations, self.pick_rotations,
+                                         active=~holding.reshape(-1).bool(), avoid=avoid)
         return q_map, candidates
 
-    def score(self, heightmap, in_hand, holding, candidates, penalty: float, **options):
+    def score(self, heightmap, in_hand, holding, candidates, penalty: float, *, swept: bool = False, **options):
         """``(scores [B, N], lookahead result)``: ``V(f(s, a)) − λ·H(s, a)`` of ``candidates`` ``[B, N, 3]``,
         λ = ``penalty`` (``-inf`` at predicted empty picks with ``empty_picks_last``); ``options`` go to
-        :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``)."""
-        result = lookahead(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
-                           chunk_size=self.chunk_size, dynamics_autocast=self.autocast == "bf16",
-                           with_entropy=self.with_entropy, pick_outcome=self.pick_outcome, **options)
+        :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``). ``swept``: the candidates
+        come from :meth:`propose` with ``pick_rotations`` K > 1, so a place state's K copies of each proposal are
+        predicted once."""
+        def predict(rows, actions):
+            return lookahead(self.dynamics, self.value_network, heightmap[rows], in_hand[rows], holding[rows], actions,
+                             chunk_size=self.chunk_size, dynamics_autocast=self.autocast == "bf16",
+                             with_entropy=self.with_entropy, pick_outcome=self.pick_outcome, **options)
+
+        k = self.pick_rotations if swept else 1
+        placing = holding.reshape(-1).bool()
+        if k == 1 or not placing.any():
+            result = predict(slice(None), candidates)
+        else:
+            places = placing.nonzero().squeeze(1)
+            result = _repeat_result(predict(places, candidates[places, ::k]), k)
+            if not placing.all():
+                picks = (~placing).nonzero().squeeze(1)
+                result = _merge_results(predict(picks, candidates[picks]), picks, result, places)
         scores = result.values
         if penalty:
             scores = scores - penalty * result.entropy
@@ -222,7 +269,7 @@ class LookaheadPlanner(StatePolicy):
         with eval_mode(self.q_network, self.dynamics, self.value_network):
             q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy, avoid=avoid)
             scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
-                                        **self.lookahead_options)
+                                        swept=self.pick_rotations > 1, **self.lookahead_options)
             scores = self.backup(result, scores, hp)
             choice = self.choose(scores, hp, greedy=greedy)
             action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)

@@ -32,7 +32,7 @@ from torch import Tensor
 
 from ldm_rl.geometry import circular_bin_distance, flat_to_action
 
-__all__ = ["sample_candidates", "mask_actions", "object_mask", "sample_near_objects", "NearObjectSampler"]
+__all__ = ["sample_candidates", "mask_actions", "near_actions", "sweep_rotations", "object_mask", "sample_near_objects", "NearObjectSampler"]
 
 _MODES = ("softmax", "argmax")
 
@@ -65,6 +65,43 @@ def mask_actions(q: Tensor, actions: Tensor, *, radius: float = 4.0, rot_radius:
     near_rot = circular_bin_distance(torch.arange(r, device=q.device), rot[..., None], r) <= rot_radius  # [B, M, R]
     near = (near_rot[..., :, None, None] & near_px[..., None, :, :] & valid[..., None, None, None]).any(1)
     return q.masked_fill(near, -math.inf)
+
+
+def near_actions(actions: Tensor, others: Tensor, num_rotations: int, *, radius: float = 4.0, rot_radius: int = 1) -> Tensor:
+    """``[B, N]`` bool: whether each of ``actions`` ``[B, N, 3]`` lies within ``radius`` pixels and ``rot_radius``
+    rotation bins (circular over ``num_rotations``) of one of ``others`` ``[B, M, 3]`` (rows holding a ``-1``
+    ignored): the entries :func:`mask_actions` sets to ``-inf``."""
+    valid = (others >= 0).all(-1)  # [B, M]
+    d = actions[:, :, None, :2] - others[:, None, :, :2]  # [B, N, M, 2]
+    near_px = d.square().sum(-1) <= radius**2
+    near_rot = circular_bin_distance(actions[:, :, None, 2], others[:, None, :, 2], num_rotations) <= rot_radius
+    return (near_px & near_rot & valid[:, None, :]).any(-1)
+
+
+def sweep_rotations(candidates: Tensor, num_rotations: int, sweep: int, *, active: Tensor,
+                    avoid: Tensor | None = None) -> Tensor:
+    """Each candidate at ``sweep`` rotations of its pixel: ``[B, N, 3] -> [B, N·K, 3]`` int64, K = ``sweep``.
+
+    In the rows where ``active`` ``[B]`` bool is set, candidate ``i`` becomes entries ``i·K … i·K + K − 1``: its own
+    action, then the same pixel at the rotations ``rot + j·R/K`` (mod R, j = 1 … K − 1; R = ``num_rotations``,
+    which K divides), evenly spaced over π. Inactive rows repeat each candidate K times, so a softmax over their
+    scores draws every original with the probability it had. A swept action near one of ``avoid`` ``[B, M, 3]``
+    (:func:`near_actions`: an action :func:`mask_actions` kept from the proposals) is its candidate again.
+    """
+    if isinstance(sweep, bool) or not isinstance(sweep, int) or sweep < 1 or num_rotations % sweep:
+        raise ValueError(f"sweep must be an int >= 1 dividing num_rotations={num_rotations}, got {sweep!r}")
+    if candidates.ndim != 3 or candidates.shape[-1] != 3 or active.shape != candidates.shape[:1]:
+        raise ValueError(f"candidates must be [B, N, 3] and active [B] with the same B, got "
+                         f"{tuple(candidates.shape)} and {tuple(active.shape)}")
+    repeated = candidates.repeat_interleave(sweep, dim=1)  # [B, N·K, 3]
+    if sweep == 1:
+        return repeated
+    step = torch.arange(sweep, device=candidates.device).repeat(candidates.shape[1]) * (num_rotations // sweep)
+    swept = torch.cat((repeated[..., :2], (repeated[..., 2:] + step[:, None]).remainder(num_rotations)), dim=-1)
+    keep = ~active.view(-1, 1, 1).bool()
+    if avoid is not None:
+        keep = keep | near_actions(swept, avoid, num_rotations)[..., None]
+    return torch.where(keep, repeated, swept)
 
 
 def sample_candidates(
