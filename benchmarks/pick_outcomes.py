@@ -14,6 +14,10 @@ With ``--model``, the run's own world model (its ``checkpoint.pt``) is scored on
 many it predicts to hold under its hand-state rule, and ``p_drop``, its probability that the pixels under the
 fingers drop (the mean over the central 12×12 of the predicted frame of P(class after < class before)), with the
 AUROC of ``p_drop`` against the true outcome on the agent's picks: what the model knows beyond its per-pixel mode.
+With ``--rotations`` too, the model is also read at every rotation of each agent pick's pixel: how often the
+object's span along the closing direction fits the open fingers at the rotation taken, at the rotation of the
+highest ``p_drop`` among the taken one's K evenly spaced (what ``planner.pick_rotations=K`` chooses from), and at
+the best rotation there is.
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -96,8 +100,8 @@ def auroc(score: np.ndarray, label: np.ndarray) -> float:
     return float((pos > neg).mean() + 0.5 * (pos == neg).mean())
 
 
-def model_reading(run: Path, p: dict, rows: np.ndarray, batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """The run's world model on the picks ``rows``: (predicted holding [n] bool, p_drop [n] float)."""
+def world_model(run: Path):
+    """The world model of ``run``'s ``checkpoint.pt``."""
     from ldm_rl.agents import load_agent
     from ldm_rl.world_model import DynamicsModel
 
@@ -105,12 +109,21 @@ def model_reading(run: Path, p: dict, rows: np.ndarray, batch: int = 64) -> tupl
     model = next((m for m in agent.modules() if isinstance(m, DynamicsModel)), None)
     if model is None:
         raise SystemExit(f"{run}/checkpoint.pt holds agent {agent.name!r}, which has no world model")
+    return model
+
+
+def model_reading(model, p: dict, rows: np.ndarray, batch: int = 64,
+                  rotation: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The world model on the picks ``rows`` (at rotation bin ``rotation`` instead of the one taken, if given):
+    (predicted holding [n] bool, p_drop [n] float)."""
     holds, drops = [], []
     with torch.no_grad():
         for start in range(0, len(rows), batch):
             r = rows[start:start + batch]
             heightmap = torch.from_numpy(p["heightmap"][r]).unsqueeze(1)
-            action = torch.from_numpy(p["action"][r])
+            action = torch.from_numpy(p["action"][r]).clone()
+            if rotation is not None:
+                action[:, 2] = rotation
             empty_hand = torch.zeros_like(heightmap[..., :p["hand_size"], :p["hand_size"]])
             pred = model.predict(heightmap, empty_hand, torch.zeros(len(r), 1, dtype=torch.bool), action)
             before = model.frame_classes(heightmap, action).long()  # [n, 1, S, S]
@@ -121,8 +134,16 @@ def model_reading(run: Path, p: dict, rows: np.ndarray, batch: int = 64) -> tupl
     return np.concatenate(holds), np.concatenate(drops)
 
 
+def swept_choice(p_drop: np.ndarray, taken: np.ndarray, sweep: int) -> np.ndarray:
+    """``[n]`` rotation bins: per pick, the bin of the highest ``p_drop`` ``[n, R]`` among ``taken`` ``[n]`` and the
+    ``sweep − 1`` bins evenly spaced after it (``taken + j·R/sweep`` mod R; first on ties)."""
+    r = p_drop.shape[1]
+    bins = (taken[:, None] + np.arange(sweep)[None, :] * (r // sweep)) % r  # [n, K]
+    return bins[np.arange(len(bins)), np.take_along_axis(p_drop, bins, 1).argmax(1)]
+
+
 def report(run: Path, surface: float, max_region: int, model: bool, opening: float = 0.07,
-           resolution: float = 0.003125) -> None:
+           resolution: float = 0.003125, rotations: bool = False) -> None:
     p = load_picks(run)
     bare = p["height"] <= surface
     regions = [None if b else object_region(m, px, surface, max_region)
@@ -158,7 +179,8 @@ def report(run: Path, surface: float, max_region: int, model: bool, opening: flo
         print(f"| {who}: held / picks | " + " | ".join(cells) + " |")
     if model:
         rows = np.nonzero(~bare)[0]
-        holds, drops = model_reading(run, p, rows)
+        ldm = world_model(run)
+        holds, drops = model_reading(ldm, p, rows)
         print("\n| picks on an object | count | held | the model predicts held: of the held / of the empty | "
               "mean p_drop: held / empty | AUROC of p_drop |")
         print("|---|---|---|---|---|---|")
@@ -176,6 +198,21 @@ def report(run: Path, surface: float, max_region: int, model: bool, opening: flo
             cells.append(f"{drops[b].mean():.2f} ({int(b.sum())})" if b.any() else "-")
         print("\nthe agent's picks, mean p_drop by span along the closing direction (cm): "
               + ", ".join(f"{lo:g}–{hi:g}: {c}" for (lo, hi), c in zip(SPAN_BANDS, cells)))
+        if rotations:
+            mine = rows[agent_rows & ~np.isnan(span[rows])]
+            r = p["num_rotations"]
+            spans = np.array([[closing_span(regions[i], k * np.pi / r) * resolution * 100 for k in range(r)] for i in mine])
+            by_rotation = np.stack([model_reading(ldm, p, mine, rotation=k)[1] for k in range(r)], 1)  # [n, R]
+            taken, n = p["action"][mine, 2], len(mine)
+            fits = lambda bins: f"{(spans[np.arange(n), bins] < opening * 100).mean():.2f}"
+            sweeps = [k for k in (2, 4, r) if r % k == 0 and k <= r]
+            print(f"\nthe agent's {n} picks on an object: share whose span along the closing direction is under "
+                  f"{opening * 100:.1f} cm")
+            print("| the rotation taken | " + " | ".join(f"the highest p_drop of K = {k}" for k in sweeps)
+                  + " | the best rotation there is |")
+            print("|---" * (len(sweeps) + 2) + "|")
+            print(f"| {fits(taken)} | " + " | ".join(fits(swept_choice(by_rotation, taken, k)) for k in sweeps)
+                  + f" | {(spans.min(1) < opening * 100).mean():.2f} |")
 
 
 def main() -> None:
@@ -185,12 +222,16 @@ def main() -> None:
     parser.add_argument("--max-region", type=int, default=1500, help="px: larger regions are containers, not objects")
     parser.add_argument("--model", action="store_true", help="also score the run's world model on the picks")
     parser.add_argument("--opening", type=float, default=0.07, help="m: the open fingers' gap (the env's gripper: 7 cm)")
+    parser.add_argument("--rotations", action="store_true",
+                        help="with --model: also read the model at every rotation of the agent's picks")
     args = parser.parse_args()
+    if args.rotations and not args.model:
+        parser.error("--rotations reads the world model: pass --model too")
     if not args.opening > 0:
         parser.error(f"--opening must be a positive gap in metres (the env's gripper: 0.07), got {args.opening!r}")
     torch.set_num_threads(1)
     for run in args.runs:
-        report(run, args.surface, args.max_region, args.model, args.opening)
+        report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations)
 
 
 if __name__ == "__main__":

@@ -131,7 +131,7 @@ def test_the_lookahead_planner_proposes_nothing_near_an_avoided_action():
 def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_scores():
     """benchmarks/pick_outcomes.py: the pick's distance to the centroid of the object under it (nan on bare
     floor or on a region too large to be an object), the object's span along the fingers' closing direction,
-    and the AUROC of a score against an outcome."""
+    the AUROC of a score against an outcome, and the rotation a sweep of K bins chooses."""
     import importlib.util
     from pathlib import Path
 
@@ -153,6 +153,12 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     assert bench.closing_span(region, np.pi / 2) == pytest.approx(13.0)  # along the columns: its length
     assert bench.closing_span(region, np.pi / 4) == pytest.approx(16 / np.sqrt(2) + 1)
     assert bench.object_region(brick, np.array([0, 0]), 0.012, 1500) is None
+    # planner.pick_rotations=K as the benchmark reads it: the best p_drop among the taken bin's K evenly spaced bins
+    p_drop = np.array([[0.1, 0.9, 0.2, 0.3, 0.8, 0.0, 0.7, 0.0], [0.5, 0.1, 0.1, 0.1, 0.5, 0.1, 0.1, 0.1]])
+    assert bench.swept_choice(p_drop, np.array([2, 0]), 1).tolist() == [2, 0]
+    assert bench.swept_choice(p_drop, np.array([2, 0]), 2).tolist() == [6, 0]  # bins {2, 6}; {0, 4} tied: the first
+    assert bench.swept_choice(p_drop, np.array([2, 0]), 4).tolist() == [4, 0]  # bins {2, 4, 6, 0}
+    assert bench.swept_choice(p_drop, np.array([2, 0]), 8).tolist() == [1, 0]  # every bin
     label = np.array([True, True, False, False])
     assert bench.auroc(np.array([0.9, 0.8, 0.1, 0.2]), label) == 1.0
     assert bench.auroc(np.array([0.1, 0.2, 0.9, 0.8]), label) == 0.0
