@@ -115,8 +115,8 @@ class LookaheadPlanner(StatePolicy):
 
     Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again);
     writes ``action`` ``[*B, 3]``, ``candidate_actions``
-    ``[*B, N·K, 3]``, ``candidate_values`` ``[*B, N·K]`` (K = ``pick_rotations``) (``V(f(s, a))``), ``state_value`` ``[*B, 1]``,
-    ``action_value`` and, with either λ > 0, ``candidate_entropy`` ``[*B, N]`` (nats).
+    ``[*B, N·K, 3]``, ``candidate_values`` ``[*B, N·K]`` (``V(f(s, a))``; K = ``pick_rotations``), ``state_value``
+    ``[*B, 1]``, ``action_value`` and, with either λ > 0, ``candidate_entropy`` ``[*B, N·K]`` (nats).
     """
 
     def __init__(

@@ -32,7 +32,8 @@ from torch import Tensor
 
 from ldm_rl.geometry import circular_bin_distance, flat_to_action
 
-__all__ = ["sample_candidates", "mask_actions", "near_actions", "sweep_rotations", "object_mask", "sample_near_objects", "NearObjectSampler"]
+__all__ = ["sample_candidates", "mask_actions", "near_actions", "sweep_rotations", "object_mask", "sample_near_objects",
+           "NearObjectSampler"]
 
 _MODES = ("softmax", "argmax")
 
@@ -67,7 +68,8 @@ def mask_actions(q: Tensor, actions: Tensor, *, radius: float = 4.0, rot_radius:
     return q.masked_fill(near, -math.inf)
 
 
-def near_actions(actions: Tensor, others: Tensor, num_rotations: int, *, radius: float = 4.0, rot_radius: int = 1) -> Tensor:
+def near_actions(actions: Tensor, others: Tensor, num_rotations: int, *, radius: float = 4.0,
+                 rot_radius: int = 1) -> Tensor:
     """``[B, N]`` bool: whether each of ``actions`` ``[B, N, 3]`` lies within ``radius`` pixels and ``rot_radius``
     rotation bins (circular over ``num_rotations``) of one of ``others`` ``[B, M, 3]`` (rows holding a ``-1``
     ignored): the entries :func:`mask_actions` sets to ``-inf``."""
