@@ -219,6 +219,10 @@ def test_sweep_rotations_spreads_each_pick_proposal_over_pi_and_repeats_the_othe
     for bad in (3, 0, True):
         with pytest.raises(ValueError, match=f"sweep must be an int >= 1 dividing num_rotations=8, got {bad!r}"):
             sweep_rotations(candidates, r, bad, active=active)
+    with pytest.raises(ValueError, match=r"candidates must be \[B, N, 3\] integer \(row, col, rot\) actions, got torch.float32"):
+        sweep_rotations(candidates.float(), r, k, active=active)
+    with pytest.raises(ValueError, match="must be .B, N, 3. and active .B. with the same B"):
+        sweep_rotations(candidates, r, k, active=active[:2])
 
 
 def test_near_actions_marks_exactly_the_entries_mask_actions_removes():
@@ -232,6 +236,10 @@ def test_near_actions_marks_exactly_the_entries_mask_actions_removes():
     want = masked[torch.arange(2)[:, None], actions[..., 2], actions[..., 0], actions[..., 1]]
     got = near_actions(actions, others, 8)
     assert torch.equal(got, want) and want.any() and (~want).any()
+    with pytest.raises(ValueError, match=r"others must be \[B, N, 3\] integer .* got torch.bool"):
+        near_actions(actions, others > 0, 8)
+    with pytest.raises(ValueError, match="the same batch size"):
+        near_actions(actions, others[:1], 8)
 
 
 class CountingModel(nn.Module):

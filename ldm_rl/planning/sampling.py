@@ -73,6 +73,11 @@ def near_actions(actions: Tensor, others: Tensor, num_rotations: int, *, radius:
     """``[B, N]`` bool: whether each of ``actions`` ``[B, N, 3]`` lies within ``radius`` pixels and ``rot_radius``
     rotation bins (circular over ``num_rotations``) of one of ``others`` ``[B, M, 3]`` (rows holding a ``-1``
     ignored): the entries :func:`mask_actions` sets to ``-inf``."""
+    _check_actions(actions, "actions")
+    _check_actions(others, "others")
+    if others.shape[0] != actions.shape[0]:
+        raise ValueError(f"actions and others must have the same batch size, got {tuple(actions.shape)} and "
+                         f"{tuple(others.shape)}")
     valid = (others >= 0).all(-1)  # [B, M]
     d = actions[:, :, None, :2] - others[:, None, :, :2]  # [B, N, M, 2]
     near_px = d.square().sum(-1) <= radius**2
@@ -92,7 +97,8 @@ def sweep_rotations(candidates: Tensor, num_rotations: int, sweep: int, *, activ
     """
     if isinstance(sweep, bool) or not isinstance(sweep, int) or sweep < 1 or num_rotations % sweep:
         raise ValueError(f"sweep must be an int >= 1 dividing num_rotations={num_rotations}, got {sweep!r}")
-    if candidates.ndim != 3 or candidates.shape[-1] != 3 or active.shape != candidates.shape[:1]:
+    _check_actions(candidates, "candidates")
+    if active.shape != candidates.shape[:1]:
         raise ValueError(f"candidates must be [B, N, 3] and active [B] with the same B, got "
                          f"{tuple(candidates.shape)} and {tuple(active.shape)}")
     repeated = candidates.repeat_interleave(sweep, dim=1)  # [B, N·K, 3]
@@ -104,6 +110,13 @@ def sweep_rotations(candidates: Tensor, num_rotations: int, sweep: int, *, activ
     if avoid is not None:
         keep = keep | near_actions(swept, avoid, num_rotations)[..., None]
     return torch.where(keep, repeated, swept)
+
+
+def _check_actions(actions, name: str) -> None:
+    if not torch.is_tensor(actions) or actions.ndim != 3 or actions.shape[-1] != 3 or actions.is_floating_point() \
+            or actions.dtype == torch.bool:
+        what = f"{actions.dtype} {tuple(actions.shape)}" if torch.is_tensor(actions) else type(actions).__name__
+        raise ValueError(f"{name} must be [B, N, 3] integer (row, col, rot) actions, got {what}")
 
 
 def sample_candidates(
