@@ -11,7 +11,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any, Callable
 
-__all__ = ["EvaluationResult", "wilson_interval", "evaluate_policy", "episode_succeeded", "episode_steps",
+__all__ = ["EvaluationResult", "wilson_interval", "evaluate_policy", "episode_succeeded", "pick_counts", "episode_steps",
            "is_bin_packing", "episode_record", "packing_report", "packing_line"]
 
 
@@ -48,6 +48,15 @@ def episode_succeeded(rollout) -> bool:
     """An episode (``[T]`` TensorDict of ``env.rollout``) succeeded: it ended terminated with a positive reward."""
     last = rollout[-1]
     return bool(last["next", "terminated"].any()) and float(last["next", "reward"].sum()) > 0
+
+
+def pick_counts(rollout) -> tuple[int, int]:
+    """``(picks, held)`` of an episode (``[T]`` TensorDict of ``env.rollout``): its steps taken with an empty hand
+    (``holding`` false: every one a pick) and those after which the hand held an object (``("next", "holding")``)."""
+    before = rollout["holding"].reshape(rollout.shape[0], -1).any(-1)
+    after = rollout["next", "holding"].reshape(rollout.shape[0], -1).any(-1)
+    picks = ~before
+    return int(picks.sum()), int((picks & after).sum())
 
 
 def evaluate_policy(env, policy, episodes: int, *, seed: int | None = None, max_steps: int = 1000,

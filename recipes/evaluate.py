@@ -12,7 +12,8 @@ Rebuilds the agent from the configuration stored in the checkpoint, plays ``epis
 ``ExplorationType.DETERMINISTIC`` and logs the success rate with a 95 % Wilson interval (bin packing adds
 ``packing``: packed fraction, mean pile top, mean return under ours and the authors' reward, blocks in the
 bin at the end, for the agent and for the scripted expert on the same scenes; ``played_with``: Q's pick mask
-and the LDM agent's planner settings the decisions used, the checkpoint's own unless overridden); writes
+and the LDM agent's planner settings the decisions used, the checkpoint's own unless overridden; ``picks``: the
+primitives taken with an empty hand and how many held an object, in all and per episode); writes
 ``evaluation.json``, ``config_resolved.yaml`` and ``evaluate.log`` (what the console showed) to the run folder.
 ``progress``: a bar with ETA on a terminal, else plain lines every 10 % or 30 s.
 
@@ -60,7 +61,7 @@ def evaluate(cfg: DictConfig) -> dict:
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.run.checkpoint import CheckpointError
     from ldm_rl.evaluation import (episode_record, episode_succeeded, evaluate_policy, is_bin_packing, packing_line,
-                                   packing_report)
+                                   packing_report, pick_counts)
     from ldm_rl.seeds import held_out_scenes
     from ldm_rl.run.outputs import atomic_write_text, hydra_output_dir, save_resolved_config
     from ldm_rl.torch_utils import resolve_device, seed_everything, set_threads
@@ -95,7 +96,8 @@ def evaluate(cfg: DictConfig) -> dict:
     returns: list[float] = []
     blocks_in_bin: list[int] | None = [] if is_bin_packing(env) else None
     record = episode_record(env, returns, blocks_in_bin)
-    per_episode: dict[str, list[int]] = {"success": [], "length": []}  # in scene order, for paired comparisons
+    # in scene order, for paired comparisons; picks: primitives taken with an empty hand, picks_held: those that held
+    per_episode: dict[str, list[int]] = {"success": [], "length": [], "picks": [], "picks_held": []}
     if blocks_in_bin is not None:
         per_episode["blocks_in_bin"] = blocks_in_bin  # bin packing: the blocks in the bin at each episode's end
 
@@ -103,6 +105,9 @@ def evaluate(cfg: DictConfig) -> dict:
         record(index, rollout)
         per_episode["success"].append(int(episode_succeeded(rollout)))
         per_episode["length"].append(int(rollout.shape[0]))
+        picks, held = pick_counts(rollout)
+        per_episode["picks"].append(picks)
+        per_episode["picks_held"].append(held)
         if index < keep:
             recorded.append(rollout)
 
@@ -117,6 +122,9 @@ def evaluate(cfg: DictConfig) -> dict:
                "num_objects": env_cfg["num_objects"],
                "trained_on": train_cfg["env"]["num_objects"], "agent": agent.name,
                "finger_spinning_friction": float(env_cfg.get("finger_spinning_friction", 0.0)), **result.as_dict()}
+    picks, held = sum(per_episode["picks"]), sum(per_episode["picks_held"])
+    summary["picks"] = {"picks": picks, "held": held, "held_rate": held / picks if picks else None}
+    log.info(f"picks: {held} of {picks} held an object" + (f" ({100 * held / picks:.0f}%)" if picks else ""))
     if blocks_in_bin is not None:  # and the scripted expert on the same scenes
         summary["packing"] = packing_report(env, returns, blocks_in_bin, seed=scenes, progress=bool(cfg.progress))
         log.info(f"bin packing: {packing_line(summary['packing'])}; the scripted expert on the same scenes: "

@@ -397,7 +397,7 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     """experiment=smoke env=bin_packing: the expert episodes that seed the replay end terminated with a
     reward in (0, 1] (the pile reward), the recipe counts exactly those as successes, and a run ends (Q on the
     log scale)."""
-    from ldm_rl.evaluation import episode_succeeded
+    from ldm_rl.evaluation import episode_succeeded, pick_counts
 
     sys.path.insert(0, str(ROOT / "recipes"))
     try:
@@ -413,6 +413,8 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
         assert bool(last["next", "terminated"]) and 0.0 < reward <= 1.0
         assert episode_succeeded(episode)
         assert (episode[:-1]["next", "reward"] == 0).all()  # the pile reward comes only with success
+        picks, held = pick_counts(episode)  # a successful episode ends with a place: one per pick that held
+        assert held == episode.shape[0] - picks >= 8 and picks >= 8
     failed = episodes[0].clone()
     failed[-1]["next", "reward"].zero_()
     assert not episode_succeeded(failed)  # terminated at 0 reward (an invalid scene) is no success

@@ -74,6 +74,10 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     assert len(per_episode["success"]) == len(per_episode["length"]) == 2
     assert sum(per_episode["success"]) == result["successes"]
     assert sum(per_episode["length"]) / 2 == pytest.approx(result["mean_length"])
+    # every step is a pick (empty hand) or a place, and each place follows a pick that held (the last may not be placed)
+    for length, picks, held in zip(per_episode["length"], per_episode["picks"], per_episode["picks_held"]):
+        assert 1 <= picks <= length and length - picks <= held <= min(picks, length - picks + 1)
+    assert result["picks"]["picks"] == sum(per_episode["picks"]) and result["picks"]["held"] == sum(per_episode["picks_held"])
 
     # the same training played with its online weights (the run has agent.greedy_ema_decay)
     online = tmp_path / "online"
