@@ -8,7 +8,7 @@ import random
 
 import pytest
 
-from ldm_rl.reports.paired_evaluations import Paired, main, pair, paired_files
+from ldm_rl.reports.paired_evaluations import Paired, PairedCounts, main, pair, pair_counts, paired_files
 
 
 def evaluation(path, successes: list[int], **overrides) -> str:
@@ -89,3 +89,31 @@ def test_main_refuses_an_odd_number_of_files(tmp_path, capsys):
         main([evaluation(tmp_path / "a.json", [1])])
     assert exit_info.value.code == 2
     assert "come in pairs" in capsys.readouterr().err
+
+
+def test_pair_counts_and_the_sign_test():
+    paired = pair_counts([6, 5, 8, 3, 4], [7, 5, 6, 3, 2])
+    assert paired == PairedCounts(scenes=5, total_a=26, total_b=23, a_higher=2, b_higher=1)
+    assert paired.ties == 2 and paired.sign_p() == 1.0  # 2 against 1: no evidence
+    assert PairedCounts(10, 60, 40, 9, 1).sign_p() == pytest.approx(Paired(0, 9, 1, 0).mcnemar_p())  # the same test
+    assert (paired + paired).total_a == 52 and (paired + paired).ties == 4
+    with pytest.raises(ValueError, match="non-negative ints, got -1"):
+        pair_counts([1, -1], [1, 1])
+    with pytest.raises(ValueError, match="non-negative ints, got 0.5"):
+        pair_counts([1, 0.5], [1, 1])
+
+
+def test_main_compares_a_per_episode_count(tmp_path, capsys):
+    def bins(path, blocks):
+        return evaluation(path, [int(b == 8) for b in blocks], task="ldm_rl/BinPacking-v0", num_objects=8,
+                          per_episode={"success": [int(b == 8) for b in blocks], "blocks_in_bin": blocks})
+
+    files = [bins(tmp_path / "plain.json", [6, 5, 8, 3]), bins(tmp_path / "rot.json", [7, 5, 8, 5])]
+    assert main([*files, "--count", "blocks_in_bin", "--labels", "plain", "K=8"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == ("| pair | scenes | plain: mean blocks_in_bin | K=8: mean blocks_in_bin | plain higher | K=8 higher "
+                        "| equal | sign test p |")
+    assert lines[2] == "| plain / rot | 4 | 5.50 | 6.25 | 0 | 2 | 2 | 0.5 |"
+    assert main([*files, "--count", "picks_held"]) == 2  # a count the files do not have: one line naming it
+    assert "per_episode.picks_held must be a list with one entry per scene (it has: blocks_in_bin, success)" in \
+        capsys.readouterr().err

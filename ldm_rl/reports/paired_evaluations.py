@@ -1,6 +1,7 @@
 """Two ways of playing compared scene by scene: paired counts and McNemar's exact test.
 
     python -m ldm_rl.reports.paired_evaluations A.json B.json [A2.json B2.json ...] [--labels A B] [--out table.md]
+    python -m ldm_rl.reports.paired_evaluations A.json B.json --count blocks_in_bin     # bin packing: blocks packed
 
 Each pair is two ``evaluation.json`` files of ``recipes/evaluate.py`` that played the same held-out scenes
 (the same task, object count, episodes and ``scene_seed``: evaluate.py's ``seed``), e.g. one checkpoint planned
@@ -8,6 +9,11 @@ two ways (``planner.uncertainty_penalty=0`` against ``=1.0``). Their ``per_episo
 scene order) are paired: scenes both won, only A won, only B won, neither. McNemar's exact test asks whether
 "only A" and "only B" differ by more than chance (two-sided binomial on the discordant scenes, p = 1 with none).
 One row per pair, then the pairs pooled (counts summed: e.g. three seeds' weights, each on the same scenes).
+
+``--count KEY`` compares a per-episode count instead of success (``per_episode.KEY``: ``blocks_in_bin`` on bin
+packing, where a full pack is rare and the blocks packed tell two ways of playing apart; ``picks_held``, ``picks``,
+``length``): each way's mean per scene, the scenes where A's count is higher, where B's is, ties, and the two-sided
+sign test on the scenes that differ (McNemar's exact test is this test on 0 / 1 outcomes).
 """
 
 from __future__ import annotations
@@ -43,9 +49,38 @@ class Paired:
 
     def mcnemar_p(self) -> float:
         """Two-sided exact McNemar p-value: P(a split of the discordant scenes at least this uneven | no difference)."""
-        discordant = self.only_a + self.only_b
-        tail = sum(math.comb(discordant, k) for k in range(min(self.only_a, self.only_b) + 1)) / 2 ** discordant
-        return min(1.0, 2 * tail)
+        return sign_test_p(self.only_a, self.only_b)
+
+
+@dataclass(frozen=True)
+class PairedCounts:
+    """A per-episode count (blocks in the bin, picks that held, …) of two evaluations on the same scenes."""
+
+    scenes: int
+    total_a: int
+    total_b: int
+    a_higher: int  # scenes where A's count is the larger
+    b_higher: int
+
+    @property
+    def ties(self) -> int:
+        return self.scenes - self.a_higher - self.b_higher
+
+    def __add__(self, other: PairedCounts) -> PairedCounts:
+        return PairedCounts(*(x + y for x, y in zip(
+            (self.scenes, self.total_a, self.total_b, self.a_higher, self.b_higher),
+            (other.scenes, other.total_a, other.total_b, other.a_higher, other.b_higher))))
+
+    def sign_p(self) -> float:
+        """Two-sided sign test on the scenes whose counts differ (p = 1 with none)."""
+        return sign_test_p(self.a_higher, self.b_higher)
+
+
+def sign_test_p(wins_a: int, wins_b: int) -> float:
+    """Two-sided exact sign test: P(a split of ``wins_a + wins_b`` fair coins at least this uneven)."""
+    n = wins_a + wins_b
+    tail = sum(math.comb(n, k) for k in range(min(wins_a, wins_b) + 1)) / 2 ** n
+    return min(1.0, 2 * tail)
 
 
 def pair(a: list[int], b: list[int]) -> Paired:
@@ -60,16 +95,29 @@ def pair(a: list[int], b: list[int]) -> Paired:
     return Paired(both, only_a, only_b, len(a) - both - only_a - only_b)
 
 
-def read(path: Path) -> dict:
-    """One ``evaluation.json`` with its per-scene outcomes."""
+def pair_counts(a: list[int], b: list[int]) -> PairedCounts:
+    """Paired comparison of two per-scene count lists (non-negative ints, same scenes in the same order)."""
+    if len(a) != len(b):
+        raise ValueError(f"per-scene lists of different lengths: {len(a)} and {len(b)}")
+    bad = [v for v in (*a, *b) if isinstance(v, bool) or not isinstance(v, int) or v < 0]
+    if bad:
+        raise ValueError(f"per-scene counts must be non-negative ints, got {bad[0]!r}")
+    return PairedCounts(len(a), sum(a), sum(b), sum(x > y for x, y in zip(a, b)), sum(y > x for x, y in zip(a, b)))
+
+
+def read(path: Path, key: str = "success") -> dict:
+    """One ``evaluation.json`` with its per-scene outcomes ``per_episode[key]``."""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: not a readable evaluation.json ({type(err).__name__}: {err})") from None
     if "per_episode" not in data:
         raise ValueError(f"{path}: no per_episode outcomes (written by recipes/evaluate.py from 2026-11-28 on)")
-    if not isinstance(data["per_episode"], dict) or not isinstance(data["per_episode"].get("success"), list):
-        raise ValueError(f"{path}: per_episode.success must be a list of 0 / 1 per scene")
+    if not isinstance(data["per_episode"], dict):
+        raise ValueError(f"{path}: per_episode must be a mapping of per-scene lists")
+    if not isinstance(data["per_episode"].get(key), list):
+        have = ", ".join(sorted(data["per_episode"])) or "none"
+        raise ValueError(f"{path}: per_episode.{key} must be a list with one entry per scene (it has: {have})")
     missing = [key for key in SAME_SCENES if key not in data]
     if missing:
         raise ValueError(f"{path}: lacks {', '.join(missing)}, needed to check that two evaluations played the "
@@ -77,13 +125,15 @@ def read(path: Path) -> dict:
     return data
 
 
-def paired_files(path_a: Path, path_b: Path) -> Paired:
-    """Paired counts of two evaluation.json files; refuses two that did not play the same scenes."""
-    a, b = read(path_a), read(path_b)
-    differ = [f"{key} {a[key]!r} vs {b[key]!r}" for key in SAME_SCENES if a[key] != b[key]]
+def paired_files(path_a: Path, path_b: Path, count: str | None = None) -> Paired | PairedCounts:
+    """Paired outcomes of two evaluation.json files: successes (:class:`Paired`) or, given ``count``, that
+    per-episode count (:class:`PairedCounts`); refuses two that did not play the same scenes."""
+    key = count or "success"
+    a, b = read(path_a, key), read(path_b, key)
+    differ = [f"{name} {a[name]!r} vs {b[name]!r}" for name in SAME_SCENES if a[name] != b[name]]
     if differ:
         raise ValueError(f"{path_a} and {path_b} played different scenes: {'; '.join(differ)}")
-    return pair(a["per_episode"]["success"], b["per_episode"]["success"])
+    return (pair_counts if count else pair)(a["per_episode"][key], b["per_episode"][key])
 
 
 def name(path: Path) -> str:
@@ -102,17 +152,31 @@ def table(rows: list[tuple[str, Paired]], label_a: str, label_b: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def count_table(rows: list[tuple[str, PairedCounts]], label_a: str, label_b: str, count: str) -> str:
+    """Markdown for a per-episode count: one row per pair and the pooled row."""
+    lines = [f"| pair | scenes | {label_a}: mean {count} | {label_b}: mean {count} | {label_a} higher | "
+             f"{label_b} higher | equal | sign test p |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, p in rows:
+        lines.append(f"| {name} | {p.scenes} | {p.total_a / p.scenes:.2f} | {p.total_b / p.scenes:.2f} | {p.a_higher} | "
+                     f"{p.b_higher} | {p.ties} | {p.sign_p():.3g} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m ldm_rl.reports.paired_evaluations", description=__doc__.splitlines()[0])
     parser.add_argument("files", nargs="+", type=Path, help="evaluation.json files, in pairs: A B [A B ...]")
     parser.add_argument("--labels", nargs=2, default=["A", "B"], metavar=("A", "B"),
                         help="names of the two ways of playing")
     parser.add_argument("--out", type=Path, default=None, help="also write the table to this markdown file")
+    parser.add_argument("--count", default=None, metavar="KEY",
+                        help="compare this per-episode count (blocks_in_bin, picks_held, picks, length), not success")
     args = parser.parse_args(argv)
     if len(args.files) % 2:
         parser.error(f"evaluation.json files come in pairs (A B ...); got {len(args.files)}")
     try:
-        rows = [(f"{name(a)} / {name(b)}", paired_files(a, b)) for a, b in zip(args.files[::2], args.files[1::2])]
+        rows = [(f"{name(a)} / {name(b)}", paired_files(a, b, args.count))
+                for a, b in zip(args.files[::2], args.files[1::2])]
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -121,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         for _, p in rows[1:]:
             pooled = pooled + p
         rows.append(("pooled", pooled))
-    text = table(rows, *args.labels)
+    text = count_table(rows, *args.labels, args.count) if args.count else table(rows, *args.labels)
     print(text, end="")
     if args.out is not None:
         atomic_write_text(args.out, text)
