@@ -138,7 +138,7 @@ def test_table1_presets_follow_the_protocol(task, iterations):
 
 def _dynamics_command(run_dir, *extra) -> list[str]:
     return [sys.executable, str(ROOT / "recipes" / "train_dynamics.py"), "dynamics.num_demo_steps=24",
-            "dynamics.iterations=200", "dynamics.eval_every=100", "dynamics.checkpoint_every=2", "dynamics.batch_size=4",
+            "dynamics.iterations=60", "dynamics.eval_every=30", "dynamics.checkpoint_every=10", "dynamics.batch_size=4",
             "dynamics.grid_samples=1", "model.width=0.125", "demos.progress=false", "threads=1", f"hydra.run.dir={run_dir}",
             *extra]
 
@@ -165,8 +165,9 @@ def test_a_stopped_dynamics_run_resumes_to_the_uninterrupted_weights(tmp_path):
     from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint
     from ldm_rl.world_model.factory import load_dynamics_checkpoint
 
-    full = subprocess.run(_dynamics_command(tmp_path / "full"), capture_output=True, text=True, cwd=tmp_path, timeout=600)
-    assert full.returncode == 0, full.stderr[-3000:]
+    # the uninterrupted run beside the one to stop (one thread each)
+    full = subprocess.Popen(_dynamics_command(tmp_path / "full"), cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
     run_dir = tmp_path / "stopped"
     proc = subprocess.Popen(_dynamics_command(run_dir), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True)
@@ -178,7 +179,9 @@ def test_a_stopped_dynamics_run_resumes_to_the_uninterrupted_weights(tmp_path):
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 128 + signal.SIGTERM and "resume with:" in err, err[-2000:]
     stopped_at = load_checkpoint(run_dir).state["iteration"]
-    assert 2 <= stopped_at < 200 and not load_checkpoint(run_dir).meta["complete"]
+    assert 10 <= stopped_at < 60 and not load_checkpoint(run_dir).meta["complete"]
+    _, full_err = full.communicate(timeout=600)
+    assert full.returncode == 0, full_err[-3000:]
     resumed = subprocess.run(_dynamics_command(run_dir, "resume=true"), capture_output=True, text=True, cwd=tmp_path,
                              timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
@@ -186,7 +189,7 @@ def test_a_stopped_dynamics_run_resumes_to_the_uninterrupted_weights(tmp_path):
     for key in ("model", "loss", "optimizer", "scheduler", "rows", "running", "iteration"):
         assert _same(a[key], b[key]), key
     model, checkpoint = load_dynamics_checkpoint(run_dir, expect={"preset": "lite"})
-    assert not model.training and checkpoint.meta["iteration"] == 200 and checkpoint.meta["complete"]
+    assert not model.training and checkpoint.meta["iteration"] == 60 and checkpoint.meta["complete"]
     with pytest.raises(CheckpointError, match="task is 'ldm_rl/BlockStacking-v0', expected 'ldm_rl/HouseBuilding-v0'"):
         load_dynamics_checkpoint(run_dir, expect={"task": "ldm_rl/HouseBuilding-v0"})
 

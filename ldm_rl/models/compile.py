@@ -7,8 +7,10 @@ and optimiser steps are untouched. Outputs equal the eager ones up to float summ
 
 Cost: inductor compiles each network on its first compiled call (≈ 0.5–1 min per network on one CPU
 thread, a C++ compiler required; torch caches the result on disk, so later runs on the same machine
-start in seconds). Target networks work because the parameters are graph inputs, not constants: the
-TorchRL ``to_module`` swap of the target weights reuses the compiled graph.
+start in seconds). Target networks work because the parameters are graph inputs, not constants: the first
+pass with the target weights swapped in by TorchRL's ``to_module`` compiles one more graph per network (its
+guards see the swapped tensors as plain attributes; ``TORCH_LOGS=recompiles`` shows it), which every later
+target pass reuses, the target syncs copying into those tensors in place.
 """
 
 from __future__ import annotations
