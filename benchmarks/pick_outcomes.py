@@ -18,6 +18,9 @@ With ``--rotations`` too, the model is also read at every rotation of each agent
 object's span along the closing direction fits the open fingers at the rotation taken, at the rotation of the
 highest ``p_drop`` among the taken one's K evenly spaced (what ``planner.pick_rotations=K`` chooses from), and at
 the best rotation there is.
+Last, the agent's on-object picks in ``--parts`` consecutive parts of equal size, in the order they were taken: the
+share that held and the share whose object's span fits the open fingers, part by part, so whether the agent's picks
+improve over training.
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -142,8 +145,22 @@ def swept_choice(p_drop: np.ndarray, taken: np.ndarray, sweep: int) -> np.ndarra
     return bins[np.arange(len(bins)), np.take_along_axis(p_drop, bins, 1).argmax(1)]
 
 
+def over_training(held: np.ndarray, fits: np.ndarray, parts: int) -> list[tuple[int, int, float, float]]:
+    """``(first, end, held share, fitting share)`` of ``parts`` consecutive, equal parts (the last one takes the
+    remainder) of picks in the order taken: ``held`` and ``fits`` bool ``[P]``."""
+    if len(held) != len(fits):
+        raise ValueError(f"held and fits must have one entry per pick, got {len(held)} and {len(fits)}")
+    if isinstance(parts, bool) or not isinstance(parts, int) or parts < 1:
+        raise ValueError(f"parts must be an int >= 1, got {parts!r}")
+    size = len(held) // parts
+    if size == 0:
+        return []
+    bounds = [(k * size, (k + 1) * size if k < parts - 1 else len(held)) for k in range(parts)]
+    return [(a, b, float(held[a:b].mean()), float(fits[a:b].mean())) for a, b in bounds]
+
+
 def report(run: Path, surface: float, max_region: int, model: bool, opening: float = 0.07,
-           resolution: float = 0.003125, rotations: bool = False) -> None:
+           resolution: float = 0.003125, rotations: bool = False, parts: int = 5) -> None:
     p = load_picks(run)
     bare = p["height"] <= surface
     regions = [None if b else object_region(m, px, surface, max_region)
@@ -177,6 +194,14 @@ def report(run: Path, surface: float, max_region: int, model: bool, opening: flo
             b = m & (span >= lo) & (span < hi)
             cells.append(f"{int(p['held'][b].sum())} / {int(b.sum())}")
         print(f"| {who}: held / picks | " + " | ".join(cells) + " |")
+    mine = ~p["expert"] & ~np.isnan(span)  # the agent's on-object picks, in the order taken
+    rows = over_training(p["held"][mine], span[mine] < opening * 100, parts)
+    if rows:
+        print(f"\nthe agent's {int(mine.sum())} picks on an object over training, in {parts} parts in the order taken")
+        print("| picks | held | span under the opening |")
+        print("|---|---|---|")
+        for a, b, held_share, fit_share in rows:
+            print(f"| {a + 1}–{b} | {held_share:.2f} | {fit_share:.2f} |")
     if model:
         rows = np.nonzero(~bare)[0]
         ldm = world_model(run)
@@ -224,14 +249,17 @@ def main() -> None:
     parser.add_argument("--opening", type=float, default=0.07, help="m: the open fingers' gap (the env's gripper: 7 cm)")
     parser.add_argument("--rotations", action="store_true",
                         help="with --model: also read the model at every rotation of the agent's picks")
+    parser.add_argument("--parts", type=int, default=5, help="the agent's picks over training: in this many parts")
     args = parser.parse_args()
+    if args.parts < 1:
+        parser.error(f"--parts must be >= 1, got {args.parts}")
     if args.rotations and not args.model:
         parser.error("--rotations reads the world model: pass --model too")
     if not args.opening > 0:
         parser.error(f"--opening must be a positive gap in metres (the env's gripper: 0.07), got {args.opening!r}")
     torch.set_num_threads(1)
     for run in args.runs:
-        report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations)
+        report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
 
 
 if __name__ == "__main__":

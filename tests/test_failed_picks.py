@@ -163,4 +163,11 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     assert bench.auroc(np.array([0.9, 0.8, 0.1, 0.2]), label) == 1.0
     assert bench.auroc(np.array([0.1, 0.2, 0.9, 0.8]), label) == 0.0
     assert bench.auroc(np.array([0.5, 0.5, 0.5, 0.5]), label) == 0.5  # ties count half
+    # the agent's picks over training: equal consecutive parts, the last one taking the remainder
+    held = np.array([0, 0, 1, 0, 1, 1, 1], bool)
+    fits = np.array([0, 1, 1, 1, 1, 1, 0], bool)
+    assert bench.over_training(held, fits, 3) == [(0, 2, 0.0, 0.5), (2, 4, 0.5, 1.0), (4, 7, 1.0, 2 / 3)]
+    assert bench.over_training(held, fits, 8) == []  # fewer picks than parts
+    with pytest.raises(ValueError, match="parts must be an int >= 1, got 0"):
+        bench.over_training(held, fits, 0)
     assert np.isnan(bench.auroc(np.array([0.5, 0.5]), np.array([True, True])))
