@@ -53,6 +53,10 @@ def episode_succeeded(rollout) -> bool:
 def pick_counts(rollout) -> tuple[int, int]:
     """``(picks, held)`` of an episode (``[T]`` TensorDict of ``env.rollout``): its steps taken with an empty hand
     (``holding`` false: every one a pick) and those after which the hand held an object (``("next", "holding")``)."""
+    missing = [key for key in ("holding", ("next", "holding")) if key not in rollout.keys(include_nested=True)]
+    if missing or len(rollout.shape) != 1:
+        raise ValueError(f"pick_counts needs one episode, a [T] TensorDict with 'holding' and ('next', 'holding'); got "
+                         f"batch shape {tuple(rollout.shape)}" + (f", missing {missing}" if missing else ""))
     before = rollout["holding"].reshape(rollout.shape[0], -1).any(-1)
     after = rollout["next", "holding"].reshape(rollout.shape[0], -1).any(-1)
     picks = ~before

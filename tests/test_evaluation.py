@@ -1,5 +1,6 @@
 """ldm_rl.evaluation's per-episode counts, on hand-built rollouts."""
 
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -19,3 +20,11 @@ def test_pick_counts_counts_empty_hand_steps_and_those_that_held():
     assert pick_counts(episode) == (4, 3)
     assert pick_counts(rollout([0, 0, 0], [0, 0, 0])) == (3, 0)  # three empty picks
     assert pick_counts(rollout([1], [0])) == (0, 0)  # a place alone is no pick
+
+
+def test_pick_counts_refuses_what_is_not_one_episode_with_the_hand_state():
+    with pytest.raises(ValueError, match=r"missing \[\('next', 'holding'\)\]"):
+        pick_counts(TensorDict({"holding": torch.zeros(3, 1, dtype=torch.bool)}, batch_size=[3]))
+    batched = torch.stack([rollout([0, 1], [1, 0]), rollout([0, 1], [1, 0])])  # [2, T]: two episodes
+    with pytest.raises(ValueError, match=r"got batch shape \(2, 2\)"):
+        pick_counts(batched)

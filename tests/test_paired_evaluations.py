@@ -97,6 +97,8 @@ def test_pair_counts_and_the_sign_test():
     assert paired.ties == 2 and paired.sign_p() == 1.0  # 2 against 1: no evidence
     assert PairedCounts(10, 60, 40, 9, 1).sign_p() == pytest.approx(Paired(0, 9, 1, 0).mcnemar_p())  # the same test
     assert (paired + paired).total_a == 52 and (paired + paired).ties == 4
+    with pytest.raises(ValueError, match="empty: no scene to compare"):
+        pair_counts([], [])
     with pytest.raises(ValueError, match="non-negative ints, got -1"):
         pair_counts([1, -1], [1, 1])
     with pytest.raises(ValueError, match="non-negative ints, got 0.5"):

@@ -99,6 +99,8 @@ def pair_counts(a: list[int], b: list[int]) -> PairedCounts:
     """Paired comparison of two per-scene count lists (non-negative ints, same scenes in the same order)."""
     if len(a) != len(b):
         raise ValueError(f"per-scene lists of different lengths: {len(a)} and {len(b)}")
+    if not a:
+        raise ValueError("per-scene lists are empty: no scene to compare")
     bad = [v for v in (*a, *b) if isinstance(v, bool) or not isinstance(v, int) or v < 0]
     if bad:
         raise ValueError(f"per-scene counts must be non-negative ints, got {bad[0]!r}")
@@ -118,7 +120,7 @@ def read(path: Path, key: str = "success") -> dict:
     if not isinstance(data["per_episode"].get(key), list):
         have = ", ".join(sorted(data["per_episode"])) or "none"
         raise ValueError(f"{path}: per_episode.{key} must be a list with one entry per scene (it has: {have})")
-    missing = [key for key in SAME_SCENES if key not in data]
+    missing = [name for name in SAME_SCENES if name not in data]
     if missing:
         raise ValueError(f"{path}: lacks {', '.join(missing)}, needed to check that two evaluations played the "
                          "same scenes")
