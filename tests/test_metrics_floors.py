@@ -181,3 +181,22 @@ def test_aggregate_table1_shows_floors_once_per_held_out_set_and_the_iou_columns
     assert ("| *floor* | 49.0 ± 1.4 (n=2) | 97.0 ± 0.0 (n=2) | 1.0 ± 0.0 (n=2) | 1.0 ± 0.0 (n=2) | 1.0 ± 0.0 (n=2) | "
             "0.50 ± 0.00 (n=2) | 2.00 ± 0.00 (n=2) |") in text
     assert "| LDM(128) | 60.0 (n=1) | – | – | – | – | 0.20 (n=1) | – |" in text  # one seed: no ± 0
+
+
+def test_ldm_zero_shot_benchmark_reads_the_stack_level_at_the_action():
+    """benchmarks/ldm_zero_shot.py: a place's level is the objects stacked at its pixel after it, a pick's before it,
+    the highest pixel within ±2 px of the action over one object's height."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("ldm_zero_shot", ROOT / "benchmarks" / "ldm_zero_shot.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    before, after = torch.zeros(4, 1, 128, 128), torch.zeros(4, 1, 128, 128)
+    before[0, :, 40:50, 40:50] = 0.08  # a pick on a 2-stack (lands 2 px outside the cube's edge: still read)
+    after[1, :, 60:70, 60:70] = 0.16  # a place making a 4-stack
+    before[1, :, 60:70, 60:70] = 0.12
+    after[2, :, 10:20, 10:20] = 0.04  # a place that lands away from its pixel: the table there
+    data = TensorDict({"heightmap": before, "holding": torch.tensor([[False], [True], [True], [False]]),
+                       "action": torch.tensor([[51, 45, 0], [65, 65, 3], [100, 100, 0], [5, 5, 0]]),
+                       "next": {"heightmap": after}}, batch_size=[4])
+    assert bench.levels(data, 0.04).tolist() == [2, 4, 0, 0]
