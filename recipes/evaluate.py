@@ -13,7 +13,8 @@ Rebuilds the agent from the configuration stored in the checkpoint, plays ``epis
 ``packing``: packed fraction, mean pile top, mean return under ours and the authors' reward, blocks in the
 bin at the end, for the agent and for the scripted expert on the same scenes; ``played_with``: Q's pick mask
 and the LDM agent's planner settings the decisions used, the checkpoint's own unless overridden; ``picks``: the
-primitives taken with an empty hand and how many held an object, in all and per episode); writes
+primitives taken with an empty hand and how many held an object, in all and per episode; ``undone``: the places
+that put back what the pick before them took, half of a 2-cycle, in all and the episodes with one); writes
 ``evaluation.json``, ``config_resolved.yaml`` and ``evaluate.log`` (what the console showed) to the run folder.
 ``progress``: a bar with ETA on a terminal, else plain lines every 10 % or 30 s.
 
@@ -61,7 +62,7 @@ def evaluate(cfg: DictConfig) -> dict:
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.run.checkpoint import CheckpointError
     from ldm_rl.evaluation import (episode_record, episode_succeeded, evaluate_policy, is_bin_packing, packing_line,
-                                   packing_report, pick_counts)
+                                   packing_report, pick_counts, undone_places)
     from ldm_rl.seeds import held_out_scenes
     from ldm_rl.run.outputs import atomic_write_text, hydra_output_dir, save_resolved_config
     from ldm_rl.torch_utils import resolve_device, seed_everything, set_threads
@@ -96,8 +97,9 @@ def evaluate(cfg: DictConfig) -> dict:
     returns: list[float] = []
     blocks_in_bin: list[int] | None = [] if is_bin_packing(env) else None
     record = episode_record(env, returns, blocks_in_bin)
-    # in scene order, for paired comparisons; picks: primitives taken with an empty hand, picks_held: those that held
-    per_episode: dict[str, list[int]] = {"success": [], "length": [], "picks": [], "picks_held": []}
+    # in scene order, for paired comparisons; picks: primitives taken with an empty hand, picks_held: those that held,
+    # undone: places that put back what the pick before them took (half a 2-cycle: pick, put back, pick again)
+    per_episode: dict[str, list[int]] = {"success": [], "length": [], "picks": [], "picks_held": [], "undone": []}
     if blocks_in_bin is not None:
         per_episode["blocks_in_bin"] = blocks_in_bin  # bin packing: the blocks in the bin at each episode's end
 
@@ -108,6 +110,7 @@ def evaluate(cfg: DictConfig) -> dict:
         picks, held = pick_counts(rollout)
         per_episode["picks"].append(picks)
         per_episode["picks_held"].append(held)
+        per_episode["undone"].append(undone_places(rollout))
         if index < keep:
             recorded.append(rollout)
 
@@ -125,6 +128,10 @@ def evaluate(cfg: DictConfig) -> dict:
     picks, held = sum(per_episode["picks"]), sum(per_episode["picks_held"])
     summary["picks"] = {"picks": picks, "held": held, "held_rate": held / picks if picks else None}
     log.info(f"picks: {held} of {picks} held an object" + (f" ({100 * held / picks:.0f}%)" if picks else ""))
+    undone = per_episode["undone"]
+    summary["undone"] = {"places": sum(undone), "episodes": sum(n > 0 for n in undone)}
+    log.info(f"places that put back what the pick before took: {sum(undone)}, in {summary['undone']['episodes']} "
+             f"of {len(undone)} episodes")
     if blocks_in_bin is not None:  # and the scripted expert on the same scenes
         summary["packing"] = packing_report(env, returns, blocks_in_bin, seed=scenes, progress=bool(cfg.progress))
         log.info(f"bin packing: {packing_line(summary['packing'])}; the scripted expert on the same scenes: "

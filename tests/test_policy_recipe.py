@@ -78,6 +78,10 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     for length, picks, held in zip(per_episode["length"], per_episode["picks"], per_episode["picks_held"]):
         assert 1 <= picks <= length and length - picks <= held <= min(picks, length - picks + 1)
     assert result["picks"]["picks"] == sum(per_episode["picks"]) and result["picks"]["held"] == sum(per_episode["picks_held"])
+    # a place that put back what its pick took is one of the places: at most one per place
+    assert all(0 <= undone <= length - picks for undone, length, picks in
+               zip(per_episode["undone"], per_episode["length"], per_episode["picks"]))
+    assert result["undone"] == {"places": sum(per_episode["undone"]), "episodes": sum(n > 0 for n in per_episode["undone"])}
 
     # the same training played with its online weights (the run has agent.greedy_ema_decay)
     online = tmp_path / "online"
