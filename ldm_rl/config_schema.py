@@ -161,6 +161,8 @@ class EnvConfig:
     demo_procedure: str = spec("direct", choices=("direct", "deconstruct"), doc="expert demo procedure")
     failed_pick_memory: int = spec(0, ge=0, le=64, doc="picks that came up empty, remembered until the hand changes and "
                                    "never proposed again (0 = off; ldm_rl.envs.memory)")
+    scene_memory: int = spec(0, ge=0, le=64, doc="scenes seen with an empty hand this episode, remembered for the "
+                             "lookahead's revisit rule (0 = off; ldm_rl.envs.memory)")
     train_object_counts: Optional[List[int]] = spec(
         None, doc="object counts drawn per training episode and expert demo (null = num_objects); evaluation uses num_objects")
     finger_spinning_friction: float = spec(
@@ -534,6 +536,8 @@ class PlannerConfig:
     pick_outcome: str = spec("mode", choices=("mode", "expected"),
                              doc="a pick scored by V of the LDM's mode, or by its expected value over held and empty")
     pick_rotations: int = spec(1, ge=1, doc="rotations each pick proposal is scored at (divides env.num_rotations)")
+    revisits_last: bool = spec(False, doc="places the LDM predicts to recreate a scene seen with an empty hand this "
+                               "episode ranked last (needs env.scene_memory > 0)")
     # planner=tree only (conf/planner/tree.yaml sets them; null elsewhere)
     depth: Optional[int] = spec(None, ge=1, doc="primitives looked ahead (tree)")
     branching: Optional[int] = spec(None, ge=1, doc="candidates expanded per node (tree)")
@@ -635,7 +639,7 @@ class TrainPolicyConfig(RunSettings):
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
         for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "pick_outcome",
-                    "pick_rotations"):  # the LDM agent's alone
+                    "pick_rotations", "revisits_last"):  # the LDM agent's alone
             value = node.planner.get(key)
             if node.agent.name != "ldm" and value and value != "mode" and not (key == "pick_rotations" and value == 1):
                 shown = "true" if value is True else value if isinstance(value, str) else _show(value)
@@ -645,6 +649,9 @@ class TrainPolicyConfig(RunSettings):
         if isinstance(sweep, int) and sweep >= 1 and rotations % sweep:
             found.append(f"{prefix}planner.pick_rotations={sweep} must divide env.num_rotations={rotations}: the swept "
                          "rotations are evenly spaced bins of Q's map")
+        if node.planner.get("revisits_last") is True and not node.env.get("scene_memory"):
+            found.append(f"{prefix}planner.revisits_last=true reads the scenes of env.scene_memory, which is "
+                         f"{node.env.get('scene_memory')!r}: set env.scene_memory > 0 (e.g. 8)")
         return found
 
 
@@ -669,6 +676,8 @@ class PlannerOverrides:
     pick_outcome: Optional[str] = spec(None, choices=(None, "mode", "expected"),
                                        doc="a pick scored by V of the LDM's mode, or by its expected value")
     pick_rotations: Optional[int] = spec(None, ge=1, doc="rotations each pick proposal is scored at")
+    revisits_last: Optional[bool] = spec(None, doc="places predicted to recreate a scene seen with an empty hand ranked "
+                                         "last (needs scene memory)")
     depth: Optional[int] = spec(None, ge=1, doc="tree: primitives looked ahead")
     branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")
     terminal_reward: Optional[float] = spec(None, gt=0.0, doc="tree: a predicted reward above it ends a branch")
@@ -685,6 +694,7 @@ class EvaluateConfig(RunSettings):
     max_steps: Optional[int] = spec(None, ge=1, doc="primitives per episode (null = 2*objects + 4)")
     preset: Optional[str] = spec(None, choices=(None, "paper", "lite"), doc="the preset the checkpoint must hold")
     failed_pick_memory: Optional[int] = spec(None, ge=0, le=64, doc="env.failed_pick_memory (null = the checkpoint's)")
+    scene_memory: Optional[int] = spec(None, ge=0, le=64, doc="env.scene_memory (null = the checkpoint's)")
     finger_spinning_friction: Optional[float] = spec(
         None, ge=0, doc="env.finger_spinning_friction (null = the checkpoint's: 0 for runs before 2026-11-27)")
     q_pick_min_height: Optional[float] = spec(None, ge=0, doc="m: agent.q_pick_min_height (null = the checkpoint's; 0 = off)")

@@ -18,6 +18,7 @@ key                     shape / dtype                                   meaning
 ``candidate_entropy``   ``[*B, N]`` float32, nats                       the LDM's uncertainty of each
 ``candidate_scores``    ``[*B, N]`` float32                             a tree planner's backed-up score
 ``failed_picks``        ``[*B, M, 3]`` int64, -1 = none                 picks that came up empty here
+``visited_scenes``      ``[*B, M, 1, 128, 128]`` float32 m, -1 = none   scenes seen with an empty hand
 ``next_logits``         ``[*B, K, S, S]`` float32                       LDM frame logits
 ``pred_heightmap``      as ``heightmap`` (under ``"next"``)             the LDM's foresight of it
 ``pred_in_hand``        as ``in_hand`` (under ``"next"``)               the LDM's foresight of it
@@ -36,7 +37,7 @@ from typing import Iterable
 __all__ = [
     "HEIGHTMAP", "IN_HAND", "HOLDING", "ACTION", "REWARD", "DONE", "TERMINATED", "TRUNCATED", "NEXT",
     "ACTION_VALUE", "STATE_VALUE", "CHOSEN_ACTION_VALUE", "CANDIDATE_ACTIONS", "CANDIDATE_VALUES", "NEXT_LOGITS",
-    "CANDIDATE_ENTROPY", "CANDIDATE_SCORES", "FAILED_PICKS",
+    "CANDIDATE_ENTROPY", "CANDIDATE_SCORES", "FAILED_PICKS", "VISITED_SCENES",
     "PRED_HEIGHTMAP", "PRED_IN_HAND", "PRED_HOLDING", "STATE_KEYS", "PRED_KEYS", "FORESIGHT_KEYS", "next_key",
     "require_keys",
 ]
@@ -48,6 +49,7 @@ CHOSEN_ACTION_VALUE = "chosen_action_value"  # TorchRL's QValueActor key
 CANDIDATE_ACTIONS, CANDIDATE_VALUES, NEXT_LOGITS = "candidate_actions", "candidate_values", "next_logits"
 CANDIDATE_ENTROPY, CANDIDATE_SCORES = "candidate_entropy", "candidate_scores"
 FAILED_PICKS = "failed_picks"  # written by ldm_rl.envs.memory.FailedPickMemory, read by the Q-map policies
+VISITED_SCENES = "visited_scenes"  # written by ldm_rl.envs.memory.SceneMemory, read by the LDM agent's planner
 PRED_HEIGHTMAP, PRED_IN_HAND, PRED_HOLDING = "pred_heightmap", "pred_in_hand", "pred_holding"
 STATE_KEYS = (HEIGHTMAP, IN_HAND, HOLDING)
 PRED_KEYS = (PRED_HEIGHTMAP, PRED_IN_HAND, PRED_HOLDING)  # the foresight of STATE_KEYS, in the same order

@@ -85,13 +85,16 @@ def evaluate(cfg: DictConfig) -> dict:
                                   planner={**planner, **greedy},
                                   q_pick_min_height=cfg.q_pick_min_height, hand_rule=cfg.hand_rule)
     env_cfg = dict(train_cfg["env"])
-    for key in ("num_objects", "max_steps", "failed_pick_memory"):
+    for key in ("num_objects", "max_steps", "failed_pick_memory", "scene_memory"):
         if cfg[key] is not None:
             env_cfg[key] = int(cfg[key])
     if cfg.finger_spinning_friction is not None:
         env_cfg["finger_spinning_friction"] = float(cfg.finger_spinning_friction)
     if cfg.num_objects is not None and cfg.max_steps is None:
         env_cfg["max_steps"] = None  # 2·objects + slack for the new object count
+    if getattr(getattr(agent, "planner", None), "revisits_last", False) and not env_cfg.get("scene_memory"):
+        raise CheckpointError(f"planner.revisits_last=true reads the scenes the env remembers, but scene_memory is "
+                              f"{env_cfg.get('scene_memory', 0)} for {path}: set scene_memory=8 (or another count > 0)")
     env = make_env_from_config(env_cfg)
     recorded: list = []
     returns: list[float] = []
@@ -141,6 +144,8 @@ def evaluate(cfg: DictConfig) -> dict:
     summary["played_with"] = played_with(agent, train_cfg)
     if cfg.failed_pick_memory is not None:
         summary["failed_pick_memory"] = int(cfg.failed_pick_memory)
+    if cfg.scene_memory is not None:
+        summary["scene_memory"] = int(cfg.scene_memory)
     if cfg.hand_rule is not None:
         summary["hand_rule"] = str(cfg.hand_rule)
     if cfg.q_pick_min_height is not None:
@@ -165,7 +170,7 @@ def one_line_lists(text: str) -> str:
 # the settings of the greedy decisions that a checkpoint's own config and the overrides decide together, read from
 # the planner as built (a tree selected by override has its constructor's depth and branching, in no config;
 # uncertainty_penalty: the greedy decisions' λ)
-PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last", "pick_outcome", "pick_rotations")
+PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last", "pick_outcome", "pick_rotations", "revisits_last")
 PLAYED_TREE_KEYS = ("depth", "branching")
 
 

@@ -474,8 +474,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
         sys.path.remove(recipes)
     assert played_with(agent, cfg)["planner"] == {"name": "tree", "num_candidates": cfg["planner"]["num_candidates"],
                                                   "uncertainty_penalty": 0.0, "empty_picks_last": False,
-                                                  "pick_outcome": "mode", "pick_rotations": 1, "depth": 2,
-                                                  "branching": 3}
+                                                  "pick_outcome": "mode", "pick_rotations": 1, "revisits_last": False,
+                                                  "depth": 2, "branching": 3}
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -505,7 +505,7 @@ def test_option_misuse_is_one_clear_config_error(overrides, message):
 @pytest.mark.slow
 def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_planner(tmp_path):
     """CI smoke: a tiny training run with the tree planner, both entropy penalties, swept pick rotations, the failed-pick memory,
-    2- or 3-block training scenes and Q fitted on its proposals, then recipes/evaluate.py
+    the revisit rule with its scene memory, 2- or 3-block training scenes and Q fitted on its proposals, then recipes/evaluate.py
     planning its weights with planner overrides (written into evaluation.json)."""
     import json
     import os
@@ -525,7 +525,8 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     run("train_policy.py", "experiment=smoke", "planner=tree", "planner.depth=2", "planner.branching=2",
         "planner.uncertainty_penalty=0.1", "planner.greedy_uncertainty_penalty=0.3", "planner.empty_picks_last=true",
         "planner.pick_rotations=2", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
-        "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1", f"hydra.run.dir={train}")
+        "planner.revisits_last=true", "env.scene_memory=4", "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1",
+        f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
@@ -542,14 +543,14 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     # an overridden λ is these greedy decisions' λ
     assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "planner": {
         "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected",
-        "pick_rotations": 4}}
+        "pick_rotations": 4, "revisits_last": True}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
     assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
     assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
         "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "pick_outcome": "mode",
-        "pick_rotations": 2, "depth": 2, "branching": 2}
+        "pick_rotations": 2, "revisits_last": True, "depth": 2, "branching": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):

@@ -83,13 +83,16 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
                zip(per_episode["undone"], per_episode["length"], per_episode["picks"]))
     assert result["undone"] == {"places": sum(per_episode["undone"]), "episodes": sum(n > 0 for n in per_episode["undone"])}
 
-    # the same training played with its online weights (the run has agent.greedy_ema_decay)
+    # the same training played with its online weights (the run has agent.greedy_ema_decay), and with the places
+    # predicted to recreate a scene of the episode ranked last (the env remembering 4 scenes)
     online = tmp_path / "online"
     proc = run("evaluate.py", f"checkpoint={out / 'checkpoint.pt'}", "episodes=1", "online_weights=true", "progress=false",
-               "finger_spinning_friction=0", f"hydra.run.dir={online}", cwd=tmp_path)
+               "finger_spinning_friction=0", "planner.revisits_last=true", "scene_memory=4", f"hydra.run.dir={online}",
+               cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads((online / "evaluation.json").read_text())
     assert result["online_weights"] is True and result["finger_spinning_friction"] == 0.0  # played on other physics
+    assert result["played_with"]["planner"]["revisits_last"] is True and result["scene_memory"] == 4
 
 
 @pytest.mark.slow
@@ -99,6 +102,11 @@ def test_evaluate_rejects_a_checkpoint_of_another_preset(smoke_run, tmp_path):
                cwd=tmp_path)
     assert proc.returncode != 0
     assert "preset" in proc.stderr and "paper" in proc.stderr and "lite" in proc.stderr
+    # the revisit rule without the scenes it reads: one line, before anything is played
+    proc = run("evaluate.py", f"checkpoint={out / 'checkpoint.pt'}", "episodes=1", "planner.revisits_last=true",
+               f"hydra.run.dir={tmp_path / 'revisits'}", cwd=tmp_path)
+    assert proc.returncode == 2 and "planner.revisits_last=true reads the scenes the env remembers, but scene_memory is 0" \
+        in proc.stderr, proc.stderr[-2000:]
 
 
 def test_unknown_agent_is_one_clear_error():

@@ -1,4 +1,5 @@
-"""``FailedPickMemory``: the picks that came up empty since the scene last changed, as an observation.
+"""Episode memories written as observations: ``FailedPickMemory`` (the picks that came up empty since the scene
+last changed) and ``SceneMemory`` (the scenes seen with an empty hand since the reset).
 
 A greedy policy is a deterministic function of the observation. A pick that closes on nothing leaves the
 hand empty and the scene (nearly) as it was, so the same policy picks at the same spot again, and again,
@@ -9,6 +10,15 @@ for none; any step that changes the hand (a pick that holds, any place) and ever
 Q-map policies (:mod:`ldm_rl.planning`) leave those actions out of their proposals
 (:func:`~ldm_rl.planning.sampling.mask_actions`). It adds a key and changes no dynamics, so an agent
 trained without it plays with it, and replay ignores the key.
+
+``SceneMemory`` writes ``visited_scenes`` ``[*B, M, 1, 128, 128]`` float32 m: the last ``M`` heightmaps observed
+with an empty hand since the reset (the reset's own first), most recent first, ``-1`` for none; a scene that differs
+from the newest one by more than ``changed`` m in at most ``same_pixels`` pixels (an empty pick: a cube's edge may
+flicker) is not stored twice. The LDM agent's planner with
+``revisits_last`` ranks a place last whose predicted scene is one of them
+(:func:`~ldm_rl.planning.planner.rank_revisits_last`): under deterministic dynamics a policy that comes back to a
+state it left has spent those steps for nothing (a 2-cycle: pick a block, put it back, pick it again). Like the
+picks' memory it adds a key and changes no dynamics; it weighs 64 KB per remembered scene in every step's TensorDict.
 """
 
 from __future__ import annotations
@@ -20,7 +30,7 @@ from torchrl.envs.transforms import Transform
 
 from ldm_rl import keys
 
-__all__ = ["FailedPickMemory"]
+__all__ = ["FailedPickMemory", "SceneMemory"]
 
 
 class FailedPickMemory(Transform):
@@ -54,5 +64,55 @@ class FailedPickMemory(Transform):
         batch = observation_spec.shape
         observation_spec[keys.FAILED_PICKS] = Bounded(
             -1, torch.iinfo(torch.int64).max, shape=(*batch, self.size, 3), dtype=torch.int64,
+            device=observation_spec.device)
+        return observation_spec
+
+
+class SceneMemory(Transform):
+    """Writes ``visited_scenes`` ``[*B, size, 1, H, W]`` (see the module docstring); ``size`` scenes are remembered;
+    two scenes with at most ``same_pixels`` pixels more than ``changed`` m apart are one."""
+
+    def __init__(self, size: int = 8, changed: float = 0.015, same_pixels: int = 32) -> None:
+        if not isinstance(size, int) or isinstance(size, bool) or size < 1:
+            raise ValueError(f"size must be a positive int (scenes remembered), got {size!r}")
+        if isinstance(changed, bool) or not isinstance(changed, (int, float)) or not changed > 0:
+            raise ValueError(f"changed must be a number > 0 (metres), got {changed!r}")
+        if not isinstance(same_pixels, int) or isinstance(same_pixels, bool) or same_pixels < 0:
+            raise ValueError(f"same_pixels must be an int >= 0, got {same_pixels!r}")
+        super().__init__(in_keys=[], out_keys=[keys.VISITED_SCENES])
+        self.size, self.changed, self.same_pixels = size, float(changed), same_pixels
+
+    def _pushed(self, memory: torch.Tensor, heightmap: torch.Tensor, push: torch.Tensor) -> torch.Tensor:
+        """``memory`` ``[*B, M, 1, H, W]`` with ``heightmap`` ``[*B, 1, H, W]`` in front where ``push`` ``[*B]`` and it
+        differs from the newest entry."""
+        new = ((heightmap - memory[..., 0, :, :, :]).abs() > self.changed).flatten(-3).sum(-1) > self.same_pixels
+        push = (push & new).reshape(*push.shape, 1, 1, 1, 1)
+        shifted = torch.cat([heightmap.unsqueeze(-4).to(memory.dtype), memory[..., :-1, :, :, :]], -4)
+        return torch.where(push, shifted, memory)
+
+    def _empty(self, heightmap: torch.Tensor) -> torch.Tensor:
+        return torch.full((*heightmap.shape[:-3], self.size, *heightmap.shape[-3:]), -1.0, dtype=torch.float32,
+                          device=heightmap.device)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        heightmap = tensordict_reset.get(keys.HEIGHTMAP)
+        empty = ~tensordict_reset.get(keys.HOLDING).bool().reshape(heightmap.shape[:-3])
+        tensordict_reset.set(keys.VISITED_SCENES, self._pushed(self._empty(heightmap), heightmap, empty))
+        return tensordict_reset
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        heightmap = next_tensordict.get(keys.HEIGHTMAP)
+        memory = tensordict.get(keys.VISITED_SCENES, None)
+        if memory is None:
+            memory = self._empty(heightmap)
+        empty = ~next_tensordict.get(keys.HOLDING).bool().reshape(heightmap.shape[:-3])
+        next_tensordict.set(keys.VISITED_SCENES, self._pushed(memory, heightmap, empty))
+        return next_tensordict
+
+    def transform_observation_spec(self, observation_spec):
+        batch = observation_spec.shape
+        scene = observation_spec[keys.HEIGHTMAP].shape[len(batch):]
+        observation_spec[keys.VISITED_SCENES] = Bounded(
+            -1.0, float(torch.finfo(torch.float32).max), shape=(*batch, self.size, *scene), dtype=torch.float32,
             device=observation_spec.device)
         return observation_spec

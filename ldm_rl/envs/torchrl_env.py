@@ -119,15 +119,16 @@ def env_kwargs_from_config(cfg: Mapping[str, Any], *, training: bool = False) ->
 def make_env_from_config(cfg: Mapping[str, Any], *, training: bool = False, **overrides):
     """``make_env`` from a Hydra ``cfg.env`` node (``training``: see ``env_kwargs_from_config``);
     ``overrides`` win over the config. ``failed_pick_memory`` > 0 appends
-    :class:`~ldm_rl.envs.memory.FailedPickMemory` of that size."""
+    :class:`~ldm_rl.envs.memory.FailedPickMemory` of that size, ``scene_memory`` > 0
+    :class:`~ldm_rl.envs.memory.SceneMemory`."""
+    from ldm_rl.envs.memory import FailedPickMemory, SceneMemory
+
     env_id, kwargs = env_kwargs_from_config(cfg, training=training)
     kwargs.update(overrides)
-    memory = int(cfg.get("failed_pick_memory") or 0)
-    if memory:
-        from ldm_rl.envs.memory import FailedPickMemory
-
-        return make_env(env_id, transforms=[FailedPickMemory(memory)], **kwargs)
-    return make_env(env_id, **kwargs)
+    picks, scenes = int(cfg.get("failed_pick_memory") or 0), int(cfg.get("scene_memory") or 0)
+    transforms = [FailedPickMemory(picks)] if picks else []
+    transforms += [SceneMemory(scenes)] if scenes else []
+    return make_env(env_id, transforms=transforms, **kwargs)
 
 
 def unwrap(env):

@@ -16,7 +16,9 @@ Option (not in the paper, off by default): ``uncertainty_penalty`` λ > 0 scores
 outcomes V rates alike, the planner prefers those its model is sure of (paper §5); ``greedy_uncertainty_penalty``
 sets another λ for the greedy decisions alone (explore where the model is unsure, act where it is sure).
 ``empty_picks_last``: a pick the LDM predicts to leave the hand empty is ranked below every candidate of the same
-state predicted to hold (:func:`rank_empty_picks_last`). ``pick_outcome="expected"``: a pick scores its expected
+state predicted to hold (:func:`rank_empty_picks_last`). ``revisits_last``: a place whose predicted scene is one the
+episode already showed with an empty hand (``visited_scenes``, :class:`~ldm_rl.envs.memory.SceneMemory`) is ranked
+below the other candidates (:func:`rank_revisits_last`): the loop of two primitives, as an empty pick is the loop of one. ``pick_outcome="expected"``: a pick scores its expected
 value over its two outcomes, ``p·V(s_held) + (1 − p)·V(s)`` (:func:`~ldm_rl.planning.lookahead.lookahead`), where
 the paper's mode calls a pick that holds one time in three "no change". ``pick_rotations`` K > 1: each pick
 proposal is also scored at K − 1 more rotations of its pixel, evenly spaced over π
@@ -42,7 +44,7 @@ from ldm_rl.planning.policy import ScheduleLike, StatePolicy
 from ldm_rl.planning.sampling import mask_actions, sample_candidates, sweep_rotations
 from ldm_rl.torch_utils import eval_mode
 
-__all__ = ["LookaheadPlanner", "rank_empty_picks_last"]
+__all__ = ["LookaheadPlanner", "rank_empty_picks_last", "rank_revisits_last"]
 
 PROPOSAL_MODES = ("softmax", "argmax")
 GREEDY_SCHEDULES = ("start", "current")
@@ -64,6 +66,29 @@ def rank_empty_picks_last(scores: torch.Tensor, holding: torch.Tensor, next_hold
                          f"{tuple(scores.shape)}, {tuple(next_holding.shape)} and {tuple(holding.shape)}")
     empty = ~holding.reshape(-1, 1).bool() & ~next_holding.bool()
     return scores.masked_fill(empty & (~empty).any(dim=1, keepdim=True), float("-inf"))
+
+
+def rank_revisits_last(scores: torch.Tensor, heightmap: torch.Tensor, holding: torch.Tensor, next_heightmap: torch.Tensor,
+                       visited: torch.Tensor, *, changed: float = 0.015, restored: float = 0.5) -> torch.Tensor:
+    """``scores`` ``[B, N]`` with ``-inf`` at every place predicted to recreate a scene of ``visited``, in the states
+    where another candidate is not.
+
+    A place changes ``m`` pixels of the scene ``heightmap`` ``[B, 1, H, W]`` (m) by more than ``changed`` m in its
+    predicted scene (``next_heightmap`` ``[B, N, 1, H, W]``); it recreates a visited scene ``[B, M, 1, H, W]`` (``-1``
+    rows: none) when the two differ in at most ``restored``·``m`` pixels: a block put back within ≈ 3 px of where its
+    pick took it (the rule of :func:`ldm_rl.evaluation.undone_places`). With deterministic dynamics such a place
+    undoes the primitives since that scene, and the state's value is discounted by every step of the loop: never
+    the best choice while another action exists. ``holding`` ``[B]`` or ``[B, 1]``: a pick decision is left as it is.
+    """
+    b, n = scores.shape
+    if next_heightmap.shape[:2] != (b, n) or heightmap.shape[0] != b or visited.shape[0] != b or holding.numel() != b:
+        raise ValueError(f"scores [B, N], heightmap [B, 1, H, W], next_heightmap [B, N, 1, H, W], visited [B, M, 1, H, W] "
+                         f"and holding [B] must agree, got {tuple(scores.shape)}, {tuple(heightmap.shape)}, "
+                         f"{tuple(next_heightmap.shape)}, {tuple(visited.shape)} and {tuple(holding.shape)}")
+    moved = ((next_heightmap - heightmap.unsqueeze(1)).abs() > changed).flatten(2).sum(2)  # [B, N]
+    differs = ((next_heightmap.unsqueeze(2) - visited.unsqueeze(1)).abs() > changed).flatten(3).sum(3)  # [B, N, M]
+    revisit = (differs <= restored * moved.unsqueeze(2)).any(2) & (moved > 0) & holding.reshape(b, 1).bool()
+    return scores.masked_fill(revisit & (~revisit).any(dim=1, keepdim=True), float("-inf"))
 
 
 def _repeat_result(result: LookaheadResult, k: int) -> LookaheadResult:
@@ -112,8 +137,11 @@ class LookaheadPlanner(StatePolicy):
         pick_outcome: ``"mode"`` (the paper: V of the LDM's most likely outcome) or ``"expected"`` (a pick from an
             empty hand scores ``p·V(s_held) + (1 − p)·V(s)``, ``p`` the LDM's probability that it holds).
         pick_rotations: K, rotations each pick proposal is scored at (an int dividing Q's R; 1 = the paper).
+        revisits_last: places predicted to recreate a scene of ``visited_scenes`` are scored ``-inf`` where another
+            candidate is not (:func:`rank_revisits_last`; False = the paper; without the key it does nothing).
 
-    Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again);
+    Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again) and
+    ``visited_scenes`` (with ``revisits_last``);
     writes ``action`` ``[*B, 3]``, ``candidate_actions``
     ``[*B, N·K, 3]``, ``candidate_values`` ``[*B, N·K]`` (``V(f(s, a))``; K = ``pick_rotations``), ``state_value``
     ``[*B, 1]``, ``action_value`` and, with either λ > 0, ``candidate_entropy`` ``[*B, N·K]`` (nats).
@@ -142,6 +170,7 @@ class LookaheadPlanner(StatePolicy):
         empty_picks_last: bool = False,
         pick_outcome: str = "mode",
         pick_rotations: int = 1,
+        revisits_last: bool = False,
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
         for name, value, allowed in (("uncertainty_penalty", uncertainty_penalty, ""),
@@ -157,6 +186,9 @@ class LookaheadPlanner(StatePolicy):
         if not isinstance(empty_picks_last, bool):
             raise ValueError(f"empty_picks_last must be True or False, got {empty_picks_last!r}")
         self.empty_picks_last = empty_picks_last
+        if not isinstance(revisits_last, bool):
+            raise ValueError(f"revisits_last must be True or False, got {revisits_last!r}")
+        self.revisits_last = revisits_last
         if pick_outcome not in PICK_OUTCOMES:
             raise ValueError(f"pick_outcome must be one of {PICK_OUTCOMES}, got {pick_outcome!r}")
         self.pick_outcome = pick_outcome
@@ -222,9 +254,11 @@ class LookaheadPlanner(StatePolicy):
                                          active=~holding.reshape(-1).bool(), avoid=avoid)
         return q_map, candidates
 
-    def score(self, heightmap, in_hand, holding, candidates, penalty: float, *, swept: bool = False, **options):
+    def score(self, heightmap, in_hand, holding, candidates, penalty: float, *, swept: bool = False, visited=None,
+              **options):
         """``(scores [B, N], lookahead result)``: ``V(f(s, a)) − λ·H(s, a)`` of ``candidates`` ``[B, N, 3]``,
-        λ = ``penalty`` (``-inf`` at predicted empty picks with ``empty_picks_last``); ``options`` go to
+        λ = ``penalty`` (``-inf`` at predicted empty picks with ``empty_picks_last``, at places predicted to recreate
+        one of the ``visited`` ``[B, M, 1, H, W]`` scenes with ``revisits_last``); ``options`` go to
         :func:`~ldm_rl.planning.lookahead.lookahead` (``with_states``, ``with_reward``). ``swept``: the candidates
         come from :meth:`propose` with ``pick_rotations`` K > 1, so a place state's K copies of each proposal are
         predicted once."""
@@ -233,6 +267,9 @@ class LookaheadPlanner(StatePolicy):
                              chunk_size=self.chunk_size, dynamics_autocast=self.autocast == "bf16",
                              with_entropy=self.with_entropy, pick_outcome=self.pick_outcome, **options)
 
+        revisits = self.revisits_last and visited is not None
+        if revisits:
+            options = {**options, "with_states": True}
         k = self.pick_rotations if swept else 1
         placing = holding.reshape(-1).bool()
         if k == 1 or not placing.any():
@@ -248,6 +285,8 @@ class LookaheadPlanner(StatePolicy):
             scores = scores - penalty * result.entropy
         if self.empty_picks_last:
             scores = rank_empty_picks_last(scores, holding, result.next_holding)
+        if revisits:
+            scores = rank_revisits_last(scores, heightmap, holding, result.next_heightmap, visited)
         return scores, result
 
     @staticmethod
@@ -262,14 +301,14 @@ class LookaheadPlanner(StatePolicy):
         (here: the one-step scores; planners that look further ahead override it)."""
         return scores
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None, visited=None) -> dict[str, torch.Tensor]:
         """Flat ``[B]`` states -> ``{action, candidate_actions, candidate_values, state_value[, action_value]
-        [, candidate_entropy][, candidate_scores]}``."""
+        [, candidate_entropy][, candidate_scores]}`` (``avoid``, ``visited``: :meth:`StatePolicy.decide`)."""
         hp = {**self.hyperparameters(greedy=greedy), "uncertainty_penalty": self.penalty(greedy=greedy)}
         with eval_mode(self.q_network, self.dynamics, self.value_network):
             q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy, avoid=avoid)
             scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
-                                        swept=self.pick_rotations > 1, **self.lookahead_options)
+                                        swept=self.pick_rotations > 1, visited=visited, **self.lookahead_options)
             scores = self.backup(result, scores, hp)
             choice = self.choose(scores, hp, greedy=greedy)
             action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)

@@ -63,9 +63,11 @@ class StatePolicy(TensorDictModuleBase):
         """The schedules' current values."""
         return {name: float(schedule(self.step)) for name, schedule in self.schedules.items()}
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None, visited=None) -> dict[str, torch.Tensor]:
         """Flat states (``[B, 1, H, W]`` m, ``[B, 1, h, h]`` m, ``[B, 1]`` bool) -> name -> ``[B, ...]`` tensor.
-        ``avoid``: ``[B, M, 3]`` int64 actions not to take (``-1`` rows: none) or None."""
+        ``avoid``: ``[B, M, 3]`` int64 actions not to take (``-1`` rows: none) or None; ``visited``: ``[B, M, 1, H, W]``
+        scenes seen with an empty hand this episode (``-1``: none; :class:`~ldm_rl.envs.memory.SceneMemory`) or None,
+        read by the planners that rank predicted revisits last and ignored by the others."""
         raise NotImplementedError
 
     def check_input(self, tensordict: TensorDictBase) -> None:
@@ -79,8 +81,9 @@ class StatePolicy(TensorDictModuleBase):
         batch = td.batch_size
         flat = td.reshape(-1)
         holding = flat.get(keys.HOLDING).reshape(-1, 1).bool()
-        avoid = flat.get(keys.FAILED_PICKS, None)
-        decision = self.decide(flat.get(keys.HEIGHTMAP), flat.get(keys.IN_HAND), holding, greedy=is_greedy(), avoid=avoid)
+        avoid, visited = flat.get(keys.FAILED_PICKS, None), flat.get(keys.VISITED_SCENES, None)
+        decision = self.decide(flat.get(keys.HEIGHTMAP), flat.get(keys.IN_HAND), holding, greedy=is_greedy(), avoid=avoid,
+                               visited=visited)
         for name, value in decision.items():
             value = value.reshape(*batch, *value.shape[1:])
             tensordict.set(name, value.squeeze(0) if unbatched else value)

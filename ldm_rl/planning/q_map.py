@@ -36,7 +36,7 @@ class QMapPolicy(StatePolicy):
         self.q_network, self.write_action_value = q_network, bool(write_action_value)
         self.out_keys = [keys.ACTION, keys.CHOSEN_ACTION_VALUE] + ([keys.ACTION_VALUE] if write_action_value else [])
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None, visited=None) -> dict[str, torch.Tensor]:
         with eval_mode(self.q_network):
             q_map = self.q_network(heightmap, in_hand, holding)
         flat = (q_map if avoid is None else mask_actions(q_map, avoid)).flatten(1)

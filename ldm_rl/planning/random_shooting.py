@@ -58,7 +58,7 @@ class RandomShootingPlanner(StatePolicy):
         self.num_candidates, self.gamma, self.chunk_size = num_candidates, float(gamma), int(chunk_size)
         self.rule = NearObjectSampler(dynamics.num_rotations, height_threshold, dilation)
 
-    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None) -> dict[str, torch.Tensor]:
+    def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None, visited=None) -> dict[str, torch.Tensor]:
         # avoid (failed picks) is not used: fresh uniform candidates each step rarely repeat an action
         candidates = self.rule(heightmap, self.num_candidates)
         scores = shooting_scores(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
