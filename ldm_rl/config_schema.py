@@ -215,6 +215,8 @@ class ModelConfig:
     hand_rule: HandRuleConfig = group(HandRuleConfig)
     hand_crop_mode: str = spec("bilinear", choices=("bilinear", "nearest"), doc="crop mode of the predicted in-hand image")
     action_sigma: float = spec(2.0, gt=0, doc="Naive only: std (px) of the action blob")
+    height_anchor: Optional[float] = spec(None, gt=0, doc="LDM only: metres; the crop shifted down so that the highest "
+                                          "class under the fingers is at most this height's (null = the paper)")
 
 
 @dataclass
@@ -357,6 +359,12 @@ class TrainDynamicsConfig(RunSettings):
         weights, k = node.loss.class_weights, node.model.num_depth_classes
         if OmegaConf.is_list(weights) and len(weights) != k:
             found.append(f"loss.class_weights has {len(weights)} entries: must have model.num_depth_classes={k}")
+        anchor = node.model.get("height_anchor")
+        if anchor is not None and node.model.name != "ldm":
+            found.append(f"model.height_anchor={_show(anchor)} shifts the LDM's local frame; model={node.model.name} has none")
+        elif anchor is not None and not anchor < node.env.max_height:
+            found.append(f"model.height_anchor={_show(anchor)} must be below env.max_height={_show(node.env.max_height)} "
+                         "(metres of the top depth class)")
         return found
 
 

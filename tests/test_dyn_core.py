@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from dyn_helpers import block_scenes, tiny_model
+from dyn_helpers import TINY, block_scenes, tiny_model
 from dyn_helpers import one_torch_thread  # noqa: F401  (fixture)
 from ldm_rl.world_model.metrics import action_region_mask
 from ldm_rl.world_model import HandStateRule
@@ -182,3 +182,86 @@ def test_leading_batch_dims_are_kept():
     pred = model.predict(hm, torch.zeros(2, 3, 1, 24, 24), torch.zeros(2, 3, 1, dtype=torch.bool), torch.full((2, 3, 3), 5))
     assert pred.heightmap.shape == (2, 3, 1, 128, 128) and pred.holding.shape == (2, 3, 1)
     assert pred.logits.shape == (2, 3, 21, 64, 64)
+
+
+# ------------------------------------------------------------------ the height-anchored frame (model.height_anchor)
+
+def _anchored_pair(anchor=0.08):
+    """(plain, anchored): the same random weights, max_height 0.25 m (block stacking's), anchor in metres."""
+    from ldm_rl.world_model import build_dynamics_model
+
+    torch.manual_seed(0)
+    plain = build_dynamics_model(dict(TINY), 0.25).eval()
+    anchored = build_dynamics_model({**TINY, "height_anchor": anchor}, 0.25).eval()
+    anchored.load_state_dict(plain.state_dict())
+    return plain, anchored
+
+
+def _column(levels: int) -> torch.Tensor:
+    """[1, 1, 128, 128]: a column of ``levels`` 4 cm cubes (13 px) centred at (64, 64) and one cube on the table 20 px
+    away, inside the crop."""
+    scene = torch.zeros(1, 1, 128, 128)
+    scene[..., 58:71, 58:71] = 0.04 * levels
+    scene[..., 58:71, 84:97] = 0.04
+    return scene
+
+
+def test_height_anchor_changes_nothing_up_to_the_anchor():
+    plain, anchored = _anchored_pair(0.08)  # class 6: a 2-cube column's top
+    n = 6
+    heightmap = block_scenes(n, seed=3)  # blocks of 4 or 8 cm: every top at or below the anchor
+    in_hand, holding = torch.rand(n, 1, 24, 24) * 0.04, (torch.arange(n) % 2 == 0).unsqueeze(-1)
+    action = torch.stack((torch.randint(20, 108, (n,)), torch.randint(20, 108, (n,)), torch.arange(n)), -1)
+    with torch.no_grad():
+        a, b = plain.predict(heightmap, in_hand, holding, action), anchored.predict(heightmap, in_hand, holding, action)
+        picks = ~holding.reshape(-1)
+        held_a = plain.held_outcome(heightmap[picks], action[picks], a.logits[picks])
+        held_b = anchored.held_outcome(heightmap[picks], action[picks], b.logits[picks])
+    for x, y in zip((*a, *held_a), (*b, *held_b)):
+        assert torch.equal(x, y)
+
+
+def test_height_anchor_predicts_a_taller_stack_as_one_of_the_anchors_height_raised():
+    plain, anchored = _anchored_pair(0.08)
+    hand = torch.zeros(1, 1, 24, 24)
+    hand[..., 6:19, 6:19] = 0.04  # holding a cube: a place on the column
+    holding, action = torch.ones(1, 1, dtype=torch.bool), torch.tensor([[64, 64, 0]])
+    three, four = _column(3), _column(4)  # tops 12 and 16 cm: classes 10 and 13, shifted by 4 and 7 to class 6
+    with torch.no_grad():
+        p3, p4 = anchored.predict(three, hand, holding, action), anchored.predict(four, hand, holding, action)
+        q3, q4 = plain.predict(three, hand, holding, action), plain.predict(four, hand, holding, action)
+    assert torch.equal(p3.logits, p4.logits) and not torch.equal(q3.logits, q4.logits)  # one frame for both
+    c3, c4 = anchored.classes(p3.heightmap).long(), anchored.classes(p4.heightmap).long()
+    raised = c4 - c3  # 3 classes up where the network predicted above its frame's floor (up to the top class)
+    assert ((raised == 0) | (raised == 3) | (c4 == anchored.num_classes - 1)).all() and (raised == 3).any()
+    # the targets of the loss: a cube set on either column is the same target in the network's frame
+    before3, target3 = anchored.frame_targets(three, _column(4), action)
+    before4, target4 = anchored.frame_targets(four, _column(5), action)
+    assert torch.equal(before3, before4) and torch.equal(target3, target4)
+    plain_before, plain_target = plain.frame_targets(four, _column(5), action)
+    assert torch.equal(plain_target, plain.frame_classes(_column(5), action)) and not torch.equal(plain_target, target4)
+
+
+def test_height_anchor_maps_predictions_back_and_rejects_bad_settings():
+    _, anchored = _anchored_pair(0.08)
+    predicted, before = torch.tensor([0, 0, 5, 0]).view(1, 1, 2, 2), torch.tensor([2, 9, 1, 4]).view(1, 1, 2, 2)
+    shift = torch.tensor(4).view(1, 1, 1, 1)
+    assert anchored.from_model_frame(predicted, before, shift).flatten().tolist() == [2, 4, 9, 4]
+    from ldm_rl.world_model import build_dynamics_model
+
+    with pytest.raises(ValueError, match=r"height_anchor must be None or metres in \(0, max_height=0.25\), got 0.3"):
+        build_dynamics_model({**TINY, "height_anchor": 0.3}, 0.25)
+    with pytest.raises(ValueError, match="the Naive model's global frame has none"):
+        build_dynamics_model({**TINY, "name": "naive", "height_anchor": 0.08}, 0.25)
+
+
+def test_height_anchor_config_errors_name_the_setting():
+    from test_config import make_cfg
+
+    from ldm_rl import config_schema
+
+    with pytest.raises(config_schema.ConfigError, match="model.height_anchor=0.3 must be below env.max_height=0.25"):
+        config_schema.validate_config(make_cfg("model.height_anchor=0.3"), config_schema.TrainDynamicsConfig)
+    with pytest.raises(config_schema.ConfigError, match="model=naive has none"):
+        config_schema.validate_config(make_cfg("model=naive", "model.height_anchor=0.08"), config_schema.TrainDynamicsConfig)
+    config_schema.validate_config(make_cfg("model.height_anchor=0.08"), config_schema.TrainDynamicsConfig)

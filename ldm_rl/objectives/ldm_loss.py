@@ -19,8 +19,9 @@ __all__ = ["LDMLoss"]
 class LDMLoss(LossModule):
     """Focal loss between the model's frame logits and the depth classes of the true next frame.
 
-    The target is ``dynamics.frame_classes(next_heightmap, action)``: the crop of the true next heightmap
-    at the same action and angle (LDM) or the whole next heightmap (Naive).
+    The target is ``dynamics.frame_targets(heightmap, next_heightmap, action)[1]``: the crop of the true next heightmap
+    at the same action and angle (LDM; in its height-anchored frame with ``height_anchor``) or the whole next heightmap
+    (Naive).
 
     Args:
         dynamics: the :class:`DynamicsModel` to train (a child module: ``loss.parameters()`` are its
@@ -106,8 +107,9 @@ class LDMLoss(LossModule):
             tensordict.set(k.next_logits, logits.detach())
         logits = logits.reshape(-1, *logits.shape[-3:])  # [N, K, S, S]
         flat_action = action.reshape(-1, 3).long()
-        target = self.dynamics.frame_classes(next_heightmap.reshape(-1, *next_heightmap.shape[-3:]), flat_action)[:, 0]
-        before = self.dynamics.frame_classes(heightmap.reshape(-1, *heightmap.shape[-3:]), flat_action)[:, 0]
+        before, target = self.dynamics.frame_targets(heightmap.reshape(-1, *heightmap.shape[-3:]),
+                                                     next_heightmap.reshape(-1, *next_heightmap.shape[-3:]), flat_action)
+        before, target = before[:, 0], target[:, 0]
         if self.auto_weights and self.training:
             self.class_counts += torch.bincount(target.flatten().long(), minlength=self.dynamics.num_classes).to(self.class_counts)
         per_sample = focal_loss(

@@ -8,6 +8,15 @@ predicted frame is pasted back inside B_a only (every other pixel is bit-identic
 (Naive baseline): the frame is the whole, unrotated heightmap and the action is given as 3 extra input
 planes (a Gaussian blob at the action pixel, cos 2θ and sin 2θ); the prediction replaces the whole image.
 
+Height anchor (``height_anchor``, metres; not in the paper, off by default). The local frame is also shifted in
+height: with ``t`` the highest class in the central ``ANCHOR_WINDOW``² pixels (what the fingers close over) and
+``a`` the anchor's class, every class of the crop is lowered by ``b = max(0, t − a)`` (clamped at 0), the network
+predicts in that frame, and its prediction is raised back by ``b`` (a pixel predicted at 0 keeps its class if that
+was ≤ b, else falls to b). Up to the anchor nothing changes; above it a pick from or a place onto a taller stack is
+predicted as the same action on a stack of the anchor's height: pick-and-place physics does not depend on how high
+the surface stands, while a classifier over absolute classes cannot output a class it never saw as a target
+(docs/policy.md, "Table 2 (blocks)").
+
 Next state. heightmap' = pasted ``argmax`` classes converted to metres; holding' by
 :class:`HandStateRule` on the depth classes around the action before vs after (and the hand before); in_hand' = the central
 ``hand_size`` crop of the pre-action heightmap at the action when holding' else zeros.
@@ -29,6 +38,7 @@ __all__ = ["HandStateRule", "RULE_KINDS", "DynamicsPrediction", "HeldOutcome", "
 
 HEIGHTMAP_SIZE = geometry.HEIGHTMAP_SIZE
 HAND_SIZE = geometry.HAND_SIZE
+ANCHOR_WINDOW = 12  # px (3.75 cm, under the fingers): the central window whose highest class sets an anchored frame's shift
 
 
 RULE_KINDS = ("occupancy", "removal")
@@ -186,6 +196,8 @@ class DynamicsModel(nn.Module):
         hand_rule: the hand-state rule.
         hand_crop_mode: geometry.crop mode for the predicted in-hand image (as the env renders it).
         action_sigma: pixels, width of the Naive model's Gaussian action blob.
+        height_anchor: metres, or None (the paper): the local frame shifted down so that the highest class under
+            the fingers is at most the anchor's (see the module docstring).
     """
 
     def __init__(
@@ -199,6 +211,7 @@ class DynamicsModel(nn.Module):
         hand_rule: HandStateRule = HandStateRule(),
         hand_crop_mode: str = "bilinear",
         action_sigma: float = 2.0,
+        height_anchor: float | None = None,
     ) -> None:
         super().__init__()
         if frame not in ("local", "global"):
@@ -212,6 +225,15 @@ class DynamicsModel(nn.Module):
         self.net, self.frame, self.frame_size = net, frame, size
         self.max_height, self.num_rotations, self.num_classes = float(max_height), int(num_rotations), net.num_classes
         self.hand_rule, self.hand_crop_mode, self.action_sigma = hand_rule, hand_crop_mode, float(action_sigma)
+        self.height_anchor, self.anchor_class = None, None
+        if height_anchor is not None:
+            if isinstance(height_anchor, bool) or not isinstance(height_anchor, (int, float)) \
+                    or not 0 < height_anchor < max_height:
+                raise ValueError(f"height_anchor must be None or metres in (0, max_height={max_height}), got {height_anchor!r}")
+            if frame != "local":
+                raise ValueError("height_anchor shifts the local frame (LDM); the Naive model's global frame has none")
+            self.height_anchor = float(height_anchor)
+            self.anchor_class = int(self.classes(torch.tensor(self.height_anchor)))
 
     # ---------------------------------------------------------------- frames
     def classes(self, heights: torch.Tensor) -> torch.Tensor:
@@ -233,6 +255,36 @@ class DynamicsModel(nn.Module):
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
         return geometry.crop(classes, centers, angles, self.frame_size, mode="nearest")
 
+    def frame_shift(self, frame: torch.Tensor) -> torch.Tensor:
+        """``[N, 1, 1, 1]`` int64: classes the height-anchored frame lowers each crop ``[N, 1, S, S]`` by (0 without
+        an anchor)."""
+        if self.anchor_class is None:
+            return torch.zeros(frame.shape[0], 1, 1, 1, dtype=torch.int64, device=frame.device)
+        top = geometry.center_crop(frame, ANCHOR_WINDOW).flatten(1).amax(1).long()
+        return (top - self.anchor_class).clamp_min(0).view(-1, 1, 1, 1)
+
+    def to_model_frame(self, frame: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+        """Absolute crop classes ``[N, 1, S, S]`` -> the network's (lowered by ``shift``, clamped at 0), uint8."""
+        return frame if self.anchor_class is None else (frame.long() - shift).clamp_min(0).to(torch.uint8)
+
+    def from_model_frame(self, predicted: torch.Tensor, before: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+        """The network's predicted classes ``[N, 1, S, S]`` -> absolute ones, uint8: raised by ``shift``; a pixel
+        predicted at 0 keeps its class ``before`` if that was at most ``shift``, else falls to ``shift``."""
+        if self.anchor_class is None:
+            return predicted.to(torch.uint8)
+        raised = torch.where(predicted == 0, torch.minimum(before.long(), shift), predicted.long() + shift)
+        return raised.clamp_max(self.num_classes - 1).to(torch.uint8)
+
+    def frame_targets(self, heightmap: torch.Tensor, next_heightmap: torch.Tensor, action: torch.Tensor):
+        """``(before, target)``: the crop classes ``[N, 1, S, S]`` of the state and of the true next state at
+        ``action``, in the network's frame (what its logits are fitted to)."""
+        before = self.frame_classes(heightmap, action)
+        target = self.frame_classes(next_heightmap, action)
+        if self.anchor_class is None:
+            return before, target
+        shift = self.frame_shift(before)
+        return self.to_model_frame(before, shift), self.to_model_frame(target, shift)
+
     def action_region(self, classes: torch.Tensor, action: torch.Tensor, size: int) -> torch.Tensor:
         """Rotated ``size``² class crop at the action (for the hand-state rule): [N,1,size,size] uint8."""
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
@@ -253,7 +305,8 @@ class DynamicsModel(nn.Module):
     def _flat_logits(self, heightmap, in_hand, holding, action):
         frame = self.frame_classes(heightmap, action)
         extra = self.action_planes(action) if self.frame == "global" else None
-        return self.net(frame, self.classes(in_hand), holding, extra), frame
+        seen = self.to_model_frame(frame, self.frame_shift(frame))
+        return self.net(seen, self.classes(in_hand), holding, extra), frame
 
     def forward(self, heightmap, in_hand, holding, action) -> torch.Tensor:
         """Frame logits ``[*B, K, S, S]`` for a state-action batch (see :func:`validate_state_action`)."""
@@ -298,7 +351,9 @@ class DynamicsModel(nn.Module):
             raise _shape_error("logits", f"[{', '.join(map(str, (*batch, k, s, s)))}] (the frame logits of these picks)", logits)
         heightmap, action = heightmap.reshape(-1, *heightmap.shape[-3:]), action.reshape(-1, 3).long()
         logits = logits.reshape(-1, k, s, s).float()
-        before = self.frame_classes(heightmap, action).long()  # [N, 1, S, S]
+        absolute = self.frame_classes(heightmap, action)  # [N, 1, S, S]
+        shift = self.frame_shift(absolute)
+        before = self.to_model_frame(absolute, shift).long()  # in the network's frame, as the logits
         below = torch.arange(k, device=logits.device).view(1, k, 1, 1) < before  # classes under each pixel's
         p_drop = torch.where(below, torch.softmax(logits, 1), 0.0).sum(1, keepdim=True)  # [N, 1, S, S]
         size = self.hand_rule.removal_size
@@ -309,7 +364,7 @@ class DynamicsModel(nn.Module):
         probability = under_fingers.flatten(1).mean(1).clamp(0.0, 1.0)
         leaves = (p_drop > 0) & (p_drop >= 0.5 * probability.view(-1, 1, 1, 1))
         lower = channel_argmax(logits.masked_fill(~below, float("-inf"))).unsqueeze(1)
-        frame = torch.where(leaves, lower, channel_argmax(logits).unsqueeze(1)).to(torch.uint8)
+        frame = self.from_model_frame(torch.where(leaves, lower, channel_argmax(logits).unsqueeze(1)), absolute, shift)
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
         if self.frame == "local":
             held = geometry.paste(heightmap, self.heights(frame).to(heightmap.dtype), centers, angles, mode="nearest")
@@ -323,7 +378,7 @@ class DynamicsModel(nn.Module):
         """Flat [N] heightmap/holding (before)/action and [N, K, S, S] logits -> the prediction reshaped to ``batch``."""
         if frame_before is None:
             frame_before = self.frame_classes(heightmap, action)
-        frame_after = channel_argmax(logits).unsqueeze(1).to(torch.uint8)
+        frame_after = self.from_model_frame(channel_argmax(logits).unsqueeze(1), frame_before, self.frame_shift(frame_before))
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
         size, picking = self.hand_rule.window, ~holding
         if self.frame == "local":

@@ -28,7 +28,8 @@ def build_dynamics_model(cfg: Mapping[str, Any], max_height: float):
 
     Keys: ``name`` (ldm | naive), ``preset`` (paper | lite), ``width`` (lite multiplier),
     ``crop_size`` (ldm), ``num_depth_classes``, ``num_rotations``, optional ``hand_rule``
-    (center_size, before_threshold, after_threshold), ``hand_crop_mode``, ``action_sigma`` (naive).
+    (center_size, before_threshold, after_threshold), ``hand_crop_mode``, ``action_sigma`` (naive), ``height_anchor``
+    (ldm; metres or null).
     ``max_height``: metres of the top depth class (``cfg.env.max_height``).
     """
     from ldm_rl.models.dynamics_net import TwoHeadDynamicsNet
@@ -52,6 +53,7 @@ def build_dynamics_model(cfg: Mapping[str, Any], max_height: float):
         hand_rule=rule,
         hand_crop_mode=cfg.get("hand_crop_mode", "bilinear"),
         action_sigma=float(cfg.get("action_sigma", 2.0)),
+        height_anchor=None if cfg.get("height_anchor") is None else float(cfg["height_anchor"]),
     )
 
 
