@@ -26,13 +26,13 @@ from pathlib import Path
 import torch
 
 
-def world_model(checkpoint: Path, online: bool):
+def world_model(checkpoint: Path, online: bool, height_anchor: float | None = None):
     """``(dynamics model, value network or None, config)`` the greedy policy of ``checkpoint`` plans with
     (``online``: the model its loss trains and the online planner's V)."""
     from ldm_rl.agents import load_agent
     from ldm_rl.world_model import DynamicsModel
 
-    agent, cfg = load_agent(checkpoint)
+    agent, cfg = load_agent(checkpoint, height_anchor=height_anchor)
     policy = agent.policy if online else agent.greedy_policy
     owners = (getattr(agent, "dynamics_loss", None),) if online else (policy, getattr(agent, "dynamics_loss", None))
     for owner in owners:
@@ -95,6 +95,8 @@ def main() -> None:
     parser.add_argument("--object-height", type=float, default=0.04, help="m: one object's height (4 cm cubes)")
     parser.add_argument("--online", action="store_true", help="the online world model, not the greedy policy's")
     parser.add_argument("--value", action="store_true", help="also V and R of the true next states")
+    parser.add_argument("--height-anchor", type=float, help="m: the world model's frame anchored at this height "
+                        "(model.height_anchor over the checkpoint's; 0 = none)")
     parser.add_argument("--json", type=Path, help="also write the rows here")
     args = parser.parse_args()
     if args.episodes < 1 or not 0.0 <= args.noise < 1.0 or args.object_height <= 0:
@@ -103,7 +105,7 @@ def main() -> None:
     from ldm_rl.data.demos import collect_demos
 
     torch.set_num_threads(1)
-    model, value, cfg = world_model(args.checkpoint, args.online)
+    model, value, cfg = world_model(args.checkpoint, args.online, args.height_anchor)
     if args.value and value is None:
         raise SystemExit(f"--value: {args.checkpoint} holds agent {cfg['agent']['name']!r}, whose policy has no value network")
     env_cfg = dict(cfg["env"])
@@ -114,7 +116,8 @@ def main() -> None:
         data = collect_demos(env_cfg, num_episodes=args.episodes, seed=args.seed, procedure=procedure,
                              noise={"random_action_prob": args.noise} if args.noise else None, progress=False)
         rows += rows_of(model, data, args.object_height, objects, value if args.value else None)
-    print(f"{args.checkpoint} ({'online' if args.online else 'greedy'} world model), expert ({procedure}, noise "
+    anchor = f", height anchor {model.height_anchor} m" if model.height_anchor is not None else ""
+    print(f"{args.checkpoint} ({'online' if args.online else 'greedy'} world model{anchor}), expert ({procedure}, noise "
           f"{args.noise}), {args.episodes} episodes per count, seed {args.seed}")
     extra = " V(next) | R(next) |" if args.value else ""
     print("| objects | primitive | level | transitions | right | region L1 (mm) | entropy (nats) |" + extra)
@@ -124,6 +127,7 @@ def main() -> None:
               f"{r['l1_region_mm']:.2f} | {r['entropy']:.3f} |" + (f" {r['v']:.3f} | {r['r']:.3f} |" if args.value else ""))
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "online": args.online, "noise": args.noise,
+                                         "height_anchor": model.height_anchor,
                                          "episodes": args.episodes, "seed": args.seed, "rows": rows}, indent=1) + "\n")
 
 

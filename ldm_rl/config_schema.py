@@ -706,6 +706,7 @@ class EvaluateConfig(RunSettings):
     finger_spinning_friction: Optional[float] = spec(
         None, ge=0, doc="env.finger_spinning_friction (null = the checkpoint's: 0 for runs before 2026-11-27)")
     q_pick_min_height: Optional[float] = spec(None, ge=0, doc="m: agent.q_pick_min_height (null = the checkpoint's; 0 = off)")
+    height_anchor: Optional[float] = spec(None, ge=0, doc="m: the LDM's model.height_anchor (null = the checkpoint's; 0 = none)")
     hand_rule: Optional[str] = spec(None, choices=(None, "occupancy", "removal"),
                                     doc="model.hand_rule.kind the world model reads holding' with (null = the checkpoint's)")
     online_weights: bool = spec(False, doc="play the online weights of a run trained with agent.greedy_ema_decay, "

@@ -83,7 +83,8 @@ def evaluate(cfg: DictConfig) -> dict:
     greedy = {"greedy_uncertainty_penalty": planner["uncertainty_penalty"]} if "uncertainty_penalty" in planner else {}
     agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device),
                                   planner={**planner, **greedy},
-                                  q_pick_min_height=cfg.q_pick_min_height, hand_rule=cfg.hand_rule)
+                                  q_pick_min_height=cfg.q_pick_min_height, hand_rule=cfg.hand_rule,
+                                  height_anchor=cfg.height_anchor)
     env_cfg = dict(train_cfg["env"])
     for key in ("num_objects", "max_steps", "failed_pick_memory", "scene_memory"):
         if cfg[key] is not None:
@@ -148,6 +149,8 @@ def evaluate(cfg: DictConfig) -> dict:
         summary["scene_memory"] = int(cfg.scene_memory)
     if cfg.hand_rule is not None:
         summary["hand_rule"] = str(cfg.hand_rule)
+    if cfg.height_anchor is not None:
+        summary["height_anchor"] = float(cfg.height_anchor)
     if cfg.q_pick_min_height is not None:
         summary["q_pick_min_height"] = float(cfg.q_pick_min_height)
     if cfg.online_weights:
@@ -190,6 +193,8 @@ def played_with(agent, cfg: dict) -> dict:
     model = world_model(agent)
     if model is not None:
         played["hand_rule"] = model.hand_rule.kind
+        if model.height_anchor is not None:
+            played["height_anchor"] = model.height_anchor
     return played
 
 

@@ -87,12 +87,13 @@ def test_evaluate_runs_a_saved_checkpoint_on_more_objects(smoke_run, tmp_path):
     # predicted to recreate a scene of the episode ranked last (the env remembering 4 scenes)
     online = tmp_path / "online"
     proc = run("evaluate.py", f"checkpoint={out / 'checkpoint.pt'}", "episodes=1", "online_weights=true", "progress=false",
-               "finger_spinning_friction=0", "planner.revisits_last=true", "scene_memory=4", f"hydra.run.dir={online}",
-               cwd=tmp_path)
+               "finger_spinning_friction=0", "planner.revisits_last=true", "scene_memory=4", "height_anchor=0.08",
+               f"hydra.run.dir={online}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads((online / "evaluation.json").read_text())
     assert result["online_weights"] is True and result["finger_spinning_friction"] == 0.0  # played on other physics
     assert result["played_with"]["planner"]["revisits_last"] is True and result["scene_memory"] == 4
+    assert result["played_with"]["height_anchor"] == result["height_anchor"] == 0.08  # the LDM's frame anchored at 8 cm
 
 
 @pytest.mark.slow
@@ -107,6 +108,10 @@ def test_evaluate_rejects_a_checkpoint_of_another_preset(smoke_run, tmp_path):
                f"hydra.run.dir={tmp_path / 'revisits'}", cwd=tmp_path)
     assert proc.returncode == 2 and "planner.revisits_last=true reads the scenes the env remembers, but scene_memory is 0" \
         in proc.stderr, proc.stderr[-2000:]
+    proc = run("evaluate.py", f"checkpoint={out / 'checkpoint.pt'}", "episodes=1", "height_anchor=0.3",
+               f"hydra.run.dir={tmp_path / 'anchor'}", cwd=tmp_path)
+    assert proc.returncode == 2 and "height_anchor must be in [0, max_height = 0.25) metres (0 = none)" in proc.stderr, \
+        proc.stderr[-2000:]
 
 
 def test_unknown_agent_is_one_clear_error():

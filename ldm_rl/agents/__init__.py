@@ -236,7 +236,7 @@ def build_agent(cfg: Mapping[str, Any], max_height: float):
 
 
 def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mapping[str, Any] | None = None,
-               q_pick_min_height: float | None = None, hand_rule: str | None = None):
+               q_pick_min_height: float | None = None, hand_rule: str | None = None, height_anchor: float | None = None):
     """Rebuild the agent saved by ``recipes/train_policy.py`` at ``path``; returns ``(agent, config)``.
 
     ``preset``: when given, the checkpoint must hold that preset (one clear error otherwise). ``planner``:
@@ -244,8 +244,9 @@ def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mappin
     ``{"name": "tree", "depth": 2}``; a tree planner's unset keys take :class:`~ldm_rl.planning.TreePlanner`'s
     defaults and the agent's γ). ``q_pick_min_height`` (m): Q's empty-pick mask set over the checkpoint's
     ``agent.q_pick_min_height`` (0 = off; a setting of the network, not a weight). ``hand_rule``: the world
-    model's ``model.hand_rule.kind`` (``"occupancy"`` | ``"removal"``; a rule, not a weight). The returned config holds
-    what was actually built.
+    model's ``model.hand_rule.kind`` (``"occupancy"`` | ``"removal"``; a rule, not a weight). ``height_anchor``: the
+    LDM's ``model.height_anchor`` (metres; 0 = none): how its frame is shifted in height, not a weight (the same weights
+    predict alike up to the anchor). The returned config holds what was actually built.
     """
     from ldm_rl.run.checkpoint import CheckpointError, load_checkpoint
 
@@ -271,6 +272,15 @@ def load_agent(path, *, preset: str | None = None, device="cpu", planner: Mappin
             raise CheckpointError(f"hand_rule={hand_rule!r} is the world model's; {path} holds agent 'fcdqn', which has none")
         model = cfg["model"]
         cfg = {**cfg, "model": {**model, "hand_rule": {**(model.get("hand_rule") or {}), "kind": str(hand_rule)}}}
+    if height_anchor is not None:
+        max_height = float(cfg["env"]["max_height"])
+        if cfg["agent"]["name"] == "fcdqn" or cfg["model"].get("name", "ldm") != "ldm":
+            raise CheckpointError(f"height_anchor={height_anchor!r} shifts the LDM's frame; {path} holds agent "
+                                  f"{cfg['agent']['name']!r} with model {cfg['model'].get('name')!r}")
+        if not 0 <= float(height_anchor) < max_height:
+            raise CheckpointError(f"height_anchor must be in [0, max_height = {max_height}) metres (0 = none) for {path}, "
+                                  f"got {height_anchor!r}")
+        cfg = {**cfg, "model": {**cfg["model"], "height_anchor": float(height_anchor) or None}}
     agent = build_agent(cfg, float(cfg["env"]["max_height"])).to(device)
     agent.load_policy_state_dict(checkpoint.state["agent"])  # best_policy.pt holds no target copies
     return agent.eval(), cfg
