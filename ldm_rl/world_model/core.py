@@ -9,10 +9,11 @@ predicted frame is pasted back inside B_a only (every other pixel is bit-identic
 planes (a Gaussian blob at the action pixel, cos 2θ and sin 2θ); the prediction replaces the whole image.
 
 Height anchor (``height_anchor``, metres; not in the paper, off by default). The local frame is also shifted in
-height: with ``t`` the highest class in the central ``ANCHOR_WINDOW``² pixels (what the fingers close over) and
-``a`` the anchor's class, every class of the crop is lowered by ``b = max(0, t − a)`` (clamped at 0), the network
-predicts in that frame, and its prediction is raised back by ``b`` (a pixel predicted at 0 keeps its class if that
-was ≤ b, else falls to b). Up to the anchor nothing changes; above it a pick from or a place onto a taller stack is
+height: with ``t`` the highest point in the central ``ANCHOR_WINDOW``² pixels (under the fingers) and ``A`` the
+anchor, every height of the crop is lowered by ``b = t − A`` metres (0 unless that exceeds half a depth class;
+heights clamped at 0) before it is quantised,
+the network predicts in that frame, and its prediction is raised back by ``b`` (a pixel predicted at 0 keeps its
+height if that was ≤ b, else falls to b). Up to the anchor nothing changes; above it a pick from or a place onto a taller stack is
 predicted as the same action on a stack of the anchor's height: pick-and-place physics does not depend on how high
 the surface stands, while a classifier over absolute classes cannot output a class it never saw as a target
 (docs/policy.md, "Table 2 (blocks)").
@@ -225,7 +226,7 @@ class DynamicsModel(nn.Module):
         self.net, self.frame, self.frame_size = net, frame, size
         self.max_height, self.num_rotations, self.num_classes = float(max_height), int(num_rotations), net.num_classes
         self.hand_rule, self.hand_crop_mode, self.action_sigma = hand_rule, hand_crop_mode, float(action_sigma)
-        self.height_anchor, self.anchor_class = None, None
+        self.height_anchor = None
         if height_anchor is not None:
             if isinstance(height_anchor, bool) or not isinstance(height_anchor, (int, float)) \
                     or not 0 < height_anchor < max_height:
@@ -233,7 +234,6 @@ class DynamicsModel(nn.Module):
             if frame != "local":
                 raise ValueError("height_anchor shifts the local frame (LDM); the Naive model's global frame has none")
             self.height_anchor = float(height_anchor)
-            self.anchor_class = int(self.classes(torch.tensor(self.height_anchor)))
 
     # ---------------------------------------------------------------- frames
     def classes(self, heights: torch.Tensor) -> torch.Tensor:
@@ -244,46 +244,47 @@ class DynamicsModel(nn.Module):
         """Depth classes -> float32 metres, same shape."""
         return geometry.classes_to_heights(classes, self.max_height, self.num_classes)
 
-    def frame_classes(self, heightmap: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """[N,1,128,128] metres, [N,3] action -> [N,1,S,S] uint8 classes of the model's frame.
+    def frame_classes(self, heightmap: torch.Tensor, action: torch.Tensor, shift: torch.Tensor | None = None) -> torch.Tensor:
+        """[N,1,128,128] metres, [N,3] action -> [N,1,S,S] uint8 classes of the model's frame; ``shift`` ``[N, 1, 1, 1]``
+        metres: the heights lowered by it first (clamped at 0; the height-anchored frame, :meth:`frame_shift`).
 
         Also the target of the loss when given the true next heightmap.
         """
+        if shift is not None:
+            heightmap = (heightmap - shift).clamp_min(0)
         classes = self.classes(heightmap)
         if self.frame == "global":
             return classes
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
         return geometry.crop(classes, centers, angles, self.frame_size, mode="nearest")
 
-    def frame_shift(self, frame: torch.Tensor) -> torch.Tensor:
-        """``[N, 1, 1, 1]`` int64: classes the height-anchored frame lowers each crop ``[N, 1, S, S]`` by (0 without
-        an anchor)."""
-        if self.anchor_class is None:
-            return torch.zeros(frame.shape[0], 1, 1, 1, dtype=torch.int64, device=frame.device)
-        top = geometry.center_crop(frame, ANCHOR_WINDOW).flatten(1).amax(1).long()
-        return (top - self.anchor_class).clamp_min(0).view(-1, 1, 1, 1)
-
-    def to_model_frame(self, frame: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
-        """Absolute crop classes ``[N, 1, S, S]`` -> the network's (lowered by ``shift``, clamped at 0), uint8."""
-        return frame if self.anchor_class is None else (frame.long() - shift).clamp_min(0).to(torch.uint8)
+    def frame_shift(self, heightmap: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``[N, 1, 1, 1]`` metres the height-anchored frame lowers each scene ``[N, 1, 128, 128]`` by at ``action``:
+        how far the highest point under the fingers (the central ``ANCHOR_WINDOW``² pixels) stands above the anchor
+        (0 without an anchor, below it, and within half a depth class above it: the env's heights carry
+        sub-millimetre noise, and a frame must not move for it)."""
+        if self.height_anchor is None:
+            return heightmap.new_zeros(heightmap.shape[0], 1, 1, 1)
+        centers, angles = geometry.action_to_pose(action, self.num_rotations)
+        under = geometry.crop(heightmap, centers, angles, ANCHOR_WINDOW, mode="nearest")
+        excess = under.flatten(1).amax(1) - self.height_anchor
+        half_class = 0.5 * self.max_height / (self.num_classes - 1)
+        return torch.where(excess > half_class, excess, torch.zeros_like(excess)).view(-1, 1, 1, 1)
 
     def from_model_frame(self, predicted: torch.Tensor, before: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
-        """The network's predicted classes ``[N, 1, S, S]`` -> absolute ones, uint8: raised by ``shift``; a pixel
-        predicted at 0 keeps its class ``before`` if that was at most ``shift``, else falls to ``shift``."""
-        if self.anchor_class is None:
+        """The network's predicted classes ``[N, 1, S, S]`` -> absolute ones (uint8), ``before`` the absolute classes of
+        the crop and ``shift`` (metres, :meth:`frame_shift`): raised by ``shift``; a pixel predicted at 0 keeps its
+        height where that was at most ``shift``, else falls to ``shift``."""
+        if self.height_anchor is None:
             return predicted.to(torch.uint8)
-        raised = torch.where(predicted == 0, torch.minimum(before.long(), shift), predicted.long() + shift)
-        return raised.clamp_max(self.num_classes - 1).to(torch.uint8)
+        height = torch.where(predicted == 0, torch.minimum(self.heights(before), shift), self.heights(predicted) + shift)
+        return self.classes(height)
 
     def frame_targets(self, heightmap: torch.Tensor, next_heightmap: torch.Tensor, action: torch.Tensor):
         """``(before, target)``: the crop classes ``[N, 1, S, S]`` of the state and of the true next state at
         ``action``, in the network's frame (what its logits are fitted to)."""
-        before = self.frame_classes(heightmap, action)
-        target = self.frame_classes(next_heightmap, action)
-        if self.anchor_class is None:
-            return before, target
-        shift = self.frame_shift(before)
-        return self.to_model_frame(before, shift), self.to_model_frame(target, shift)
+        shift = self.frame_shift(heightmap, action) if self.height_anchor is not None else None
+        return self.frame_classes(heightmap, action, shift), self.frame_classes(next_heightmap, action, shift)
 
     def action_region(self, classes: torch.Tensor, action: torch.Tensor, size: int) -> torch.Tensor:
         """Rotated ``size``² class crop at the action (for the hand-state rule): [N,1,size,size] uint8."""
@@ -305,7 +306,7 @@ class DynamicsModel(nn.Module):
     def _flat_logits(self, heightmap, in_hand, holding, action):
         frame = self.frame_classes(heightmap, action)
         extra = self.action_planes(action) if self.frame == "global" else None
-        seen = self.to_model_frame(frame, self.frame_shift(frame))
+        seen = frame if self.height_anchor is None else self.frame_classes(heightmap, action, self.frame_shift(heightmap, action))
         return self.net(seen, self.classes(in_hand), holding, extra), frame
 
     def forward(self, heightmap, in_hand, holding, action) -> torch.Tensor:
@@ -352,8 +353,8 @@ class DynamicsModel(nn.Module):
         heightmap, action = heightmap.reshape(-1, *heightmap.shape[-3:]), action.reshape(-1, 3).long()
         logits = logits.reshape(-1, k, s, s).float()
         absolute = self.frame_classes(heightmap, action)  # [N, 1, S, S]
-        shift = self.frame_shift(absolute)
-        before = self.to_model_frame(absolute, shift).long()  # in the network's frame, as the logits
+        shift = self.frame_shift(heightmap, action)
+        before = self.frame_classes(heightmap, action, shift).long()  # in the network's frame, as the logits
         below = torch.arange(k, device=logits.device).view(1, k, 1, 1) < before  # classes under each pixel's
         p_drop = torch.where(below, torch.softmax(logits, 1), 0.0).sum(1, keepdim=True)  # [N, 1, S, S]
         size = self.hand_rule.removal_size
@@ -378,7 +379,7 @@ class DynamicsModel(nn.Module):
         """Flat [N] heightmap/holding (before)/action and [N, K, S, S] logits -> the prediction reshaped to ``batch``."""
         if frame_before is None:
             frame_before = self.frame_classes(heightmap, action)
-        frame_after = self.from_model_frame(channel_argmax(logits).unsqueeze(1), frame_before, self.frame_shift(frame_before))
+        frame_after = self.from_model_frame(channel_argmax(logits).unsqueeze(1), frame_before, self.frame_shift(heightmap, action))
         centers, angles = geometry.action_to_pose(action, self.num_rotations)
         size, picking = self.hand_rule.window, ~holding
         if self.frame == "local":
