@@ -11,12 +11,11 @@ planes (a Gaussian blob at the action pixel, cos 2θ and sin 2θ); the predictio
 Height anchor (``height_anchor``, metres; not in the paper, off by default). The local frame is also shifted in
 height: with ``t`` the highest point in the central ``ANCHOR_WINDOW``² pixels (under the fingers) and ``A`` the
 anchor, every height of the crop is lowered by ``b = t − A`` metres (0 unless that exceeds half a depth class;
-heights clamped at 0) before it is quantised,
-the network predicts in that frame, and its prediction is raised back by ``b`` (a pixel predicted at 0 keeps its
-height if that was ≤ b, else falls to b). Up to the anchor nothing changes; above it a pick from or a place onto a taller stack is
-predicted as the same action on a stack of the anchor's height: pick-and-place physics does not depend on how high
-the surface stands, while a classifier over absolute classes cannot output a class it never saw as a target
-(docs/policy.md, "Table 2 (blocks)").
+heights clamped at 0) before it is quantised, the network predicts in that frame, and its prediction is raised back
+by ``b`` (a pixel predicted at 0 keeps its height if that was ≤ b, else falls to b). Up to the anchor nothing
+changes; above it a pick from or a place onto a taller stack is predicted as the same action on a stack of the
+anchor's height: pick-and-place does not depend on how high the surface stands, while a classifier over absolute
+classes cannot output a class it never saw as a target (docs/dynamics.md, "The height anchor").
 
 Next state. heightmap' = pasted ``argmax`` classes converted to metres; holding' by
 :class:`HandStateRule` on the depth classes around the action before vs after (and the hand before); in_hand' = the central
@@ -39,7 +38,7 @@ __all__ = ["HandStateRule", "RULE_KINDS", "DynamicsPrediction", "HeldOutcome", "
 
 HEIGHTMAP_SIZE = geometry.HEIGHTMAP_SIZE
 HAND_SIZE = geometry.HAND_SIZE
-ANCHOR_WINDOW = 12  # px (3.75 cm, under the fingers): the central window whose highest class sets an anchored frame's shift
+ANCHOR_WINDOW = 12  # px (3.75 cm, under the fingers): the central window whose highest point sets an anchored frame's shift
 
 
 RULE_KINDS = ("occupancy", "removal")
@@ -197,8 +196,8 @@ class DynamicsModel(nn.Module):
         hand_rule: the hand-state rule.
         hand_crop_mode: geometry.crop mode for the predicted in-hand image (as the env renders it).
         action_sigma: pixels, width of the Naive model's Gaussian action blob.
-        height_anchor: metres, or None (the paper): the local frame shifted down so that the highest class under
-            the fingers is at most the anchor's (see the module docstring).
+        height_anchor: metres, or None (the paper): the local frame lowered by how far the highest point under the
+            fingers stands above it (see the module docstring).
     """
 
     def __init__(
