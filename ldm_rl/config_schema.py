@@ -215,8 +215,8 @@ class ModelConfig:
     hand_rule: HandRuleConfig = group(HandRuleConfig)
     hand_crop_mode: str = spec("bilinear", choices=("bilinear", "nearest"), doc="crop mode of the predicted in-hand image")
     action_sigma: float = spec(2.0, gt=0, doc="Naive only: std (px) of the action blob")
-    height_anchor: Optional[float] = spec(None, gt=0, doc="LDM only: metres; the crop shifted down so that the highest "
-                                          "class under the fingers is at most this height's (null = the paper)")
+    height_anchor: Optional[float] = spec(None, gt=0, doc="LDM only: metres; the crop lowered by how far the highest "
+                                          "point under the fingers stands above it (null = the paper)")
 
 
 @dataclass
