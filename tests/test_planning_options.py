@@ -542,7 +542,7 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015 and result["hand_rule"] == "removal"
     # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
     # an overridden λ is these greedy decisions' λ
-    assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "planner": {
+    assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "height_anchor": 0.08, "planner": {
         "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected",
         "pick_rotations": 4, "revisits_last": True}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
