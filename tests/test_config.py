@@ -87,8 +87,9 @@ def test_experiment_presets_compose_and_set_what_they_say(preset):
     for entry in raw.get("defaults", []):
         for target, option in (entry.items() if isinstance(entry, dict) else []):
             group = target.split()[-1].strip("/")
-            expected = OmegaConf.load(CONF / group / f"{option}.yaml")
-            assert cfg[group].get("id", None) == expected.get("id", None) and cfg[group].keys() >= expected.keys(), preset
+            expected = OmegaConf.load(CONF / group / f"{option}.yaml")  # its own defaults list is not a key
+            assert all(cfg[group].get(key) == expected.get(key) for key in _IDENTITY_KEYS if key in expected), preset
+            assert cfg[group].keys() >= expected.keys() - {"defaults"}, preset
     if config_name == "train_dynamics":
         config_schema.validate_config(cfg, config_schema.TrainDynamicsConfig)
 
@@ -530,6 +531,10 @@ def _differences(a, b, prefix=""):
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
+    # and the reported house rows' planner: the depth-2 tree, predicted empty picks last, the pick mask
+    ("curves_house_building_tree", {"agent.gamma", "agent.lr.value", "agent.value_augmentation", "agent.q_pick_min_height",
+                                    "planner.name", "planner.depth", "planner.branching", "planner.gamma",
+                                    "planner.terminal_reward", "planner.empty_picks_last"}),
     ("curves_bottle_arrangement", {"agent.gamma", "schedule.total_episodes", "agent.value_augmentation",
                                    "agent.q_pick_min_height", "planner.empty_picks_last", "planner.uncertainty_penalty",
                                    "planner.greedy_uncertainty_penalty"}),
@@ -599,3 +604,30 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
         assert getattr(built.policy, "uncertainty_penalty", 0.0) == (0.25 if agent == "ldm" else 0.0)
         if agent == "ldm":
             assert built.policy.penalty(greedy=True) == 1.0 and built.policy.penalty(greedy=False) == 0.25
+
+
+@pytest.mark.parametrize("agent", ["ldm", "fcdqn", "rs", "dynaq"])
+def test_the_house_tree_preset_is_the_reported_house_protocol_and_the_paper_planner_one_override_away(agent):
+    """experiment=curves_house_building_tree composes, for the ldm agent, to the command of the reported heads8
+    house rows (curves_house_building with planner=tree, predicted empty picks last and the pick mask), builds a
+    TreePlanner, and gives the one-step planner back with planner=diverse; the other agents get the pick mask
+    where they have a Q network and nothing of the ldm agent's planner."""
+    from omegaconf import OmegaConf
+
+    from ldm_rl.agents import build_agent
+    from ldm_rl.planning.tree_planner import TreePlanner
+
+    tree = make_cfg("experiment=curves_house_building_tree", f"agent={agent}", config_name="train_policy")
+    config_schema.validate_config(tree, config_schema.TrainPolicyConfig)
+    assert tree.planner.name == "tree" and tree.planner.depth == 2 and tree.agent.value_augmentation == (
+        "shifts" if agent == "ldm" else None)
+    assert tree.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
+    assert tree.planner.empty_picks_last is (agent == "ldm")
+    if agent == "ldm":
+        reported = make_cfg("experiment=curves_house_building", "planner=tree", "planner.empty_picks_last=true",
+                            "agent.q_pick_min_height=0.015", config_name="train_policy")
+        assert OmegaConf.to_container(tree) == OmegaConf.to_container(reported)
+        assert isinstance(build_agent(tree, float(tree.env.max_height)).policy, TreePlanner)
+        paper = make_cfg("experiment=curves_house_building_tree", "planner=diverse", config_name="train_policy")
+        config_schema.validate_config(paper, config_schema.TrainPolicyConfig)
+        assert not isinstance(build_agent(paper, float(paper.env.max_height)).policy, TreePlanner)
