@@ -449,6 +449,9 @@ class AgentConfig:
                                              "moved by random shifts | turned, mirrored and shifted")
     value_shift: Optional[int] = spec(None, ge=1, le=32, doc="ldm: largest shift of value_augmentation=shifts "
                                       "or symmetries, pixels")
+    value_raise_levels: int = spec(0, ge=0, le=8, doc="ldm: V fitted on next states with the tallest object raised "
+                                   "by a random 0..L levels (0 = off)")
+    value_raise_height: Optional[float] = spec(None, gt=0, lt=1, doc="ldm: metres of one level of value_raise_levels")
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
     termination_head: bool = spec(False, doc="ldm: V composed from a termination head, V = T·R + (1 − T)·W "
                                   "(T fitted on the terminated flag)")
@@ -475,9 +478,16 @@ class AgentConfig:
                 elif node.name != agent and node[key] is not None:
                     found.append(f"{prefix}{key}={_show(node[key])} is set but only agent={agent} uses it "
                                  f"(agent.name={node.name})")
-        for key in ("autocast", "value_augmentation", "value_shift"):
+        for key in ("autocast", "value_augmentation", "value_shift", "value_raise_height"):
             if node.name != "ldm" and node.get(key) is not None:
                 found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
+        if node.get("value_raise_levels"):
+            if node.name != "ldm":
+                found.append(f"{prefix}value_raise_levels={_show(node.value_raise_levels)} is set but only agent=ldm "
+                             f"uses it (agent.name={node.name})")
+            elif node.get("value_raise_height") is None:
+                found.append(f"{prefix}value_raise_levels={_show(node.value_raise_levels)} needs "
+                             f"{prefix}value_raise_height (metres of one level, e.g. 0.04 for the cubes)")
         if node.get("termination_head") and node.name != "ldm":
             found.append(f"{prefix}termination_head=true is set but only agent=ldm uses it (agent.name={node.name})")
         if node.get("greedy_ema_tail") is not None and node.get("greedy_ema_decay") is None:

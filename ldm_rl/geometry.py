@@ -53,6 +53,7 @@ __all__ = [
     "rotate",
     "quarter_turns",
     "shift",
+    "raise_tallest",
     "rotate_stack",
     "unrotate_stack",
     "heights_to_classes",
@@ -503,6 +504,36 @@ def shift(images: Tensor, offsets: Tensor) -> Tensor:
     picked = images[torch.arange(b, device=images.device)[:, None, None], :,
                     rows.clamp(0, h - 1)[:, :, None], cols.clamp(0, w - 1)[:, None, :]]  # [B, H, W, C]
     return picked.permute(0, 3, 1, 2) * inside[:, None].to(images.dtype)
+
+
+def raise_tallest(heightmaps: Tensor, lift: Tensor, floor: float) -> Tensor:
+    """Raise the object standing under each heightmap's highest pixel by its own ``lift`` ``[B]`` (metres, ≥ 0), as
+    if that many metres of object were slid under it: every pixel above ``floor`` m that is connected (8-neighbours,
+    through pixels above ``floor``) to the highest one goes up by ``lift``; the rest is unchanged, and a heightmap
+    with nothing above ``floor`` is returned as it is. ``heightmaps`` ``[B, 1, H, W]`` float, metres. Objects that
+    touch the tallest one are raised with it (one region). The region grows by one 3×3 dilation a step, so the cost
+    is the region's diameter in pixels of max-pools over the batch."""
+    heightmaps = _check_images(heightmaps, "heightmaps")
+    if heightmaps.dim() != 4 or heightmaps.shape[1] != 1:
+        raise ValueError(f"heightmaps must be [B, 1, H, W], got {tuple(heightmaps.shape)}")
+    b = heightmaps.shape[0]
+    if not torch.is_tensor(lift) or tuple(lift.shape) != (b,):
+        shape = tuple(lift.shape) if torch.is_tensor(lift) else type(lift).__name__
+        raise ValueError(f"lift must be a [{b}] tensor of metres (one per heightmap), got {shape}")
+    if bool((lift < 0).any()):
+        raise ValueError(f"lift must be >= 0 metres, got min {float(lift.min())}")
+    if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not math.isfinite(floor):
+        raise ValueError(f"floor must be a finite number of metres, got {floor!r}")
+    above = heightmaps > floor
+    region = torch.zeros_like(above).flatten(1)
+    region[torch.arange(b, device=heightmaps.device), heightmaps.flatten(1).argmax(1)] = True
+    region = region.view_as(above) & above
+    while True:
+        grown = torch.nn.functional.max_pool2d(region.to(heightmaps.dtype), 3, 1, 1).bool() & above
+        if torch.equal(grown, region):
+            break
+        region = grown
+    return heightmaps + lift.to(heightmaps).view(b, 1, 1, 1) * region
 
 
 def rotate_stack(images: Tensor, num_rotations: int, mode: str = "bilinear") -> Tensor:

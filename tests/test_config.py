@@ -237,6 +237,11 @@ BAD_COMMANDS = [
     ("train_policy.py", ["agent=fcdqn", "agent.value_shift=2"],
      "error: agent.value_shift=2 is set but only agent=ldm uses it (agent.name=fcdqn)"),
     ("train_policy.py", ["agent.value_shift=0"], "error: agent.value_shift=0 is out of range"),
+    ("train_policy.py", ["agent.value_raise_levels=2"],
+     "error: agent.value_raise_levels=2 needs agent.value_raise_height (metres of one level, e.g. 0.04 for the cubes)"),
+    ("train_policy.py", ["agent=fcdqn", "agent.value_raise_levels=2", "agent.value_raise_height=0.04"],
+     "error: agent.value_raise_height=0.04 is set but only agent=ldm uses it (agent.name=fcdqn); "
+     "agent.value_raise_levels=2 is set but only agent=ldm uses it (agent.name=fcdqn)"),
     ("train_policy.py", ["schedule.updates_per_step=0"], "error: schedule.updates_per_step=0.0 is out of range"),
     ("train_policy.py", ["env=house_building", "env.num_objects=9"],
      "error: env.num_objects=9: ldm_rl/HouseBuilding-v0 takes exactly 3 objects"),

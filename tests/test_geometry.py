@@ -375,6 +375,49 @@ def test_shift_moves_each_image_by_its_own_offset_and_fills_the_border_with_zero
         g.shift(images, offsets[:, :1])
 
 
+def _scene(*boxes, size=24):
+    """[1, 1, size, size] heightmap of axis-aligned boxes (row0, col0, side, height m)."""
+    image = torch.zeros(1, 1, size, size)
+    for r, c, side, h in boxes:
+        image[..., r:r + side, c:c + side] = h
+    return image
+
+
+def test_raise_tallest_lifts_the_whole_tallest_object_and_nothing_else():
+    """A 2-stack whose lower cube sticks out (0.04 / 0.08 m), a loose cube apart: the stack's every pixel goes up by
+    the row's lift, the loose cube and the table stay; a zero lift and an empty scene are the identity."""
+    stack = _scene((3, 3, 6, 0.04), (4, 4, 4, 0.08), (15, 15, 5, 0.04))[0]  # the top cube's footprint inside the lower
+    empty = torch.zeros(1, 24, 24)
+    images = torch.stack([stack, stack, empty])
+    out = g.raise_tallest(images, torch.tensor([0.08, 0.0, 0.04]), floor=0.02)
+    tower = torch.zeros(1, 24, 24, dtype=torch.bool)
+    tower[:, 3:9, 3:9] = True
+    assert torch.equal(out[0][tower], stack[tower] + 0.08)
+    assert torch.equal(out[0][~tower], stack[~tower])  # the loose cube and the table are untouched
+    assert torch.equal(out[1], stack) and torch.equal(out[2], empty)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_raise_tallest_follows_diagonal_contact_and_stops_at_the_floor(seed):
+    """Property: on random scenes of separated cubes, exactly the cubes 8-connected to the highest pixel through
+    pixels above the floor rise (a cube touching the tallest at a corner rises with it), and nothing else moves."""
+    gen = torch.Generator().manual_seed(seed)
+    heights = (torch.randint(1, 4, (4,), generator=gen) * 0.04).tolist()
+    heights[0] = 0.2  # the tallest
+    image = _scene((2, 2, 4, heights[0]), (6, 6, 4, heights[1]),  # touches the tallest at one corner pixel
+                   (2, 14, 4, heights[2]), (14, 2, 4, heights[3]))  # apart (≥ 4 px of table between)
+    out = g.raise_tallest(image, torch.tensor([0.04]), floor=0.02)
+    rose = (out - image).abs() > 1e-9
+    want = _scene((2, 2, 4, 1.0), (6, 6, 4, 1.0)) > 0
+    assert torch.equal(rose, want)
+    with pytest.raises(ValueError, match=r"lift must be a \[1\] tensor"):
+        g.raise_tallest(image, torch.tensor([0.04, 0.04]), floor=0.02)
+    with pytest.raises(ValueError, match="lift must be >= 0"):
+        g.raise_tallest(image, torch.tensor([-0.04]), floor=0.02)
+    with pytest.raises(ValueError, match=r"heightmaps must be \[B, 1, H, W\]"):
+        g.raise_tallest(image.expand(1, 2, 24, 24), torch.tensor([0.04]), floor=0.02)
+
+
 def test_quarter_turns_turn_each_image_by_its_own_count_exactly():
     images = torch.rand(6, 2, 9, 9, generator=torch.Generator().manual_seed(0))
     turns = torch.tensor([0, 1, 2, 3, 5, -1])

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
 SMOKE = ("experiment=smoke", "agent.return_lower_bound=true", "agent.greedy_ema_decay=0.9",
-         "agent.termination_head=true")
+         "agent.termination_head=true", "agent.value_raise_levels=2", "agent.value_raise_height=0.04")
 
 
 def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:
@@ -26,8 +26,8 @@ def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("train_policy")
     # with the return bound on (the stacking_lite choice), so the replay's return column runs end to end, and the
-    # greedy policy's averaged weights and V's termination head, so the checkpoints, the resume and evaluate.py
-    # carry them
+    # greedy policy's averaged weights, V's termination head and its raised towers, so the checkpoints, the resume
+    # and evaluate.py carry them
     proc = run("train_policy.py", *SMOKE, f"hydra.run.dir={out}", cwd=out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, proc

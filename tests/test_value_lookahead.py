@@ -320,6 +320,37 @@ def test_symmetry_augmentation_turns_mirrors_and_shifts_each_next_state():
     assert len({m[0] for m in found}) >= 3 and len({m[2:] for m in found}) >= 4
 
 
+def test_raise_augmentation_fits_v_on_next_states_with_the_tallest_object_raised_by_whole_levels():
+    """``value_raise_levels=2``: each row's V input (real and predicted next state) is its stored heightmap with the
+    tallest object raised by 0, 1 or 2 levels of ``value_raise_height`` — the same count for both images; over a
+    seeded batch all three counts occur; the targets do not move; the option is off (no draw) by default."""
+    loss = make_loss(value_raise_levels=2, value_raise_height=0.04)
+    batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
+    torch.manual_seed(3)
+    out = loss(batch.clone())
+    real, predicted = v_inputs(loss, batch, seed=3)
+    stored = batch["next", "heightmap"]
+    plain = make_loss()
+    predicted_plain = v_inputs(plain, batch.clone())[1]
+    levels = []
+    for row in range(24):
+        matches = [n for n in range(3) if torch.equal(
+            real[row], geometry.raise_tallest(stored[row:row + 1], torch.tensor([n * 0.04]), floor=0.02)[0])]
+        assert len(matches) == 1, f"row {row}: V saw no whole-level raise of its next state"
+        levels.append(matches[0])
+        raised = geometry.raise_tallest(predicted_plain[row:row + 1], torch.tensor([matches[0] * 0.04]), floor=0.02)
+        assert torch.equal(predicted[row], raised[0])  # the prediction raised by the same count
+    assert set(levels) == {0, 1, 2}
+    torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
+    state, images = torch.get_rng_state(), stored[:4]
+    assert draw_value_augmentation(None, 4)(images) is images
+    assert torch.equal(torch.get_rng_state(), state)  # off: no random draw, so earlier runs replay exactly
+    with pytest.raises(ValueError, match="value_raise_height must be metres in"):
+        make_loss(value_raise_levels=1)
+    with pytest.raises(ValueError, match="value_raise_levels must be an int >= 0"):
+        draw_value_augmentation(None, 4, raise_levels=-1, raise_height=0.04)
+
+
 def test_a_termination_head_is_fitted_on_the_terminated_flag_and_v_only_trains_the_value_head():
     q, dynamics, _ = tiny_networks(0)
     torch.manual_seed(5)

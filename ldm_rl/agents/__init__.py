@@ -110,6 +110,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         bootstrap_cache=int(agent_cfg.get("bootstrap_cache") or 0),
         value_augmentation=agent_cfg.get("value_augmentation"),
         value_shift=int(agent_cfg.get("value_shift") or 4),
+        value_raise_levels=int(agent_cfg.get("value_raise_levels") or 0),
+        value_raise_height=agent_cfg.get("value_raise_height"),
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
         q_log_floor=agent_cfg.get("q_log_floor"),
         q_proposal_fit=int(agent_cfg.get("q_proposal_fit") or 0),

@@ -59,28 +59,47 @@ def _check_shift(shift) -> int:
     return shift
 
 
-def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, device=None):
+def _check_raise(levels, height) -> tuple[int, float | None]:
+    if isinstance(levels, bool) or not isinstance(levels, int) or levels < 0:
+        raise ValueError(f"value_raise_levels must be an int >= 0 (0 = off), got {levels!r}")
+    if levels == 0:
+        return 0, None
+    if isinstance(height, bool) or not isinstance(height, (int, float)) or not (0 < height < 1):
+        raise ValueError(f"value_raise_height must be metres in (0, 1) when value_raise_levels={levels}, got {height!r}")
+    return levels, float(height)
+
+
+def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, raise_levels: int = 0,
+                            raise_height: float | None = None, device=None):
     """One random draw per row of augmentation ``kind`` (:data:`VALUE_AUGMENTATIONS`; torch's global RNG), returned
     as ``heightmap [batch, 1, H, W] -> the same, transformed``: apply it to several images of a row (the real and
     the predicted next state) to move them alike. ``None``: the identity. ``"quarter_turns"``: a random quarter
     turn; ``"shifts"``: a random whole-pixel offset in ``[−shift, shift]`` per axis (the border read as 0 m);
-    ``"symmetries"``: a quarter turn, a mirror (transpose) half the time, then a shift."""
+    ``"symmetries"``: a quarter turn, a mirror (transpose) half the time, then a shift.
+
+    ``raise_levels`` L > 0 (with any ``kind``): then the tallest object is raised by a random whole number of levels
+    in ``[0, L]``, ``raise_height`` metres each (:func:`~ldm_rl.geometry.raise_tallest`, pixels above half a level
+    counted as object), drawn per row and applied to each image of the row."""
     if kind not in VALUE_AUGMENTATIONS:
         raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {kind!r}")
     _check_shift(shift)
-    if kind is None:
-        return lambda heightmap: heightmap
+    raise_levels, raise_height = _check_raise(raise_levels, raise_height)
     turns = torch.randint(4, (batch,), device=device) if kind in ("quarter_turns", "symmetries") else None
     mirror = (torch.rand(batch, device=device) < 0.5).view(batch, 1, 1, 1) if kind == "symmetries" else None
     offsets = (torch.randint(-shift, shift + 1, (batch, 2), device=device) if kind in ("shifts", "symmetries")
                else None)
+    lift = (torch.randint(raise_levels + 1, (batch,), device=device) * raise_height if raise_levels else None)
+    if kind is None and lift is None:
+        return lambda heightmap: heightmap
 
     def transform(heightmap: torch.Tensor) -> torch.Tensor:
         if turns is not None:
             heightmap = geometry.quarter_turns(heightmap, turns)
         if mirror is not None:
             heightmap = torch.where(mirror, heightmap.transpose(-2, -1), heightmap)
-        return heightmap if offsets is None else geometry.shift(heightmap, offsets)
+        if offsets is not None:
+            heightmap = geometry.shift(heightmap, offsets)
+        return heightmap if lift is None else geometry.raise_tallest(heightmap, lift, floor=raise_height / 2)
     return transform
 
 
@@ -130,6 +149,15 @@ class LookaheadLoss(TransitionLoss):
             mirror (transpose) with probability 1/2, then a random shift (the in-hand image is left as it is).
         value_shift: the largest shift of ``"shifts"`` and ``"symmetries"``, pixels (≥ 1). An object standing
             within that many pixels of the workspace's edge may be cut by a shift: keep it to a few pixels.
+        value_raise_levels: L ≥ 0 (0 = off; not in the paper): V (and its reward head) is fitted on each next state
+            (real and predicted) with its tallest object raised by a random number of levels in ``[0, L]``, ``value_raise_height``
+            metres each, as if that many objects stood under it, toward the same targets. Block stacking's value
+            depends on how many blocks are not yet on the tower, not on the tower's height: a 2-stack beside a
+            loose block is as far from done as a 4-stack beside one. Trained on 2 and 3 blocks, V has only seen
+            towers of at most three, and on 5 blocks rated "a 4-stack beside a fallen block" as solved
+            (docs/policy.md, "Table 2 (blocks)"); raised towers show it that a loose block beside a tall one is
+            not. A task prior, right for stacking; not for tasks whose goal has a height (house building).
+        value_raise_height: metres of one level (block stacking: the cube's 0.04 m); needed when L > 0.
         q_proposal_fit: M in [0, N]: Q is also fitted, at each live next state ``s'``, on the first M of its
             target proposals ``Ā_N(s')`` (the target Q map's best, then the next after inhibition), toward
             ``V⁻(f⁻(s', a'))``, the score the target already computed for them (clamped to ``target_range``):
@@ -175,6 +203,8 @@ class LookaheadLoss(TransitionLoss):
         bootstrap_cache: int = 0,
         value_augmentation: str | None = None,
         value_shift: int = 4,
+        value_raise_levels: int = 0,
+        value_raise_height: float | None = None,
         target_uncertainty_penalty: float = 0.0,
         q_log_floor: float | None = None,
         q_proposal_fit: int = 0,
@@ -190,6 +220,7 @@ class LookaheadLoss(TransitionLoss):
             raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {value_augmentation!r}")
         self.value_augmentation = value_augmentation
         self.value_shift = _check_shift(value_shift)
+        self.value_raise_levels, self.value_raise_height = _check_raise(value_raise_levels, value_raise_height)
         self.return_lower_bound = bool(return_lower_bound)
         if q_target not in ("max", "lookahead"):
             raise ValueError(f"q_target must be 'max' or 'lookahead', got {q_target!r}")
@@ -367,8 +398,10 @@ class LookaheadLoss(TransitionLoss):
         return (loss * weight.index_select(0, rows).repeat_interleave(m, 0)).mean()
 
     def _draw_augmentation(self, batch: int, device):
-        """:func:`draw_value_augmentation` of this loss's ``value_augmentation`` and ``value_shift``."""
-        return draw_value_augmentation(self.value_augmentation, batch, shift=self.value_shift, device=device)
+        """:func:`draw_value_augmentation` of this loss's ``value_augmentation``, ``value_shift`` and raise."""
+        return draw_value_augmentation(self.value_augmentation, batch, shift=self.value_shift,
+                                       raise_levels=self.value_raise_levels, raise_height=self.value_raise_height,
+                                       device=device)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         self.check_batch(tensordict)
