@@ -239,14 +239,22 @@ def v_inputs(loss, batch, seed=None) -> list[torch.Tensor]:
     return seen
 
 
+def augmented_and_plain(loss, batch, seed=3):
+    """On ``batch``: ``loss``'s outputs, V's real and predicted inputs under ``loss``'s augmentation (drawn from
+    ``seed``), and the plain loss's predicted inputs and value target."""
+    torch.manual_seed(seed)
+    out = loss(batch.clone())
+    real, predicted = v_inputs(loss, batch, seed=seed)
+    plain = make_loss()
+    return out, real, predicted, v_inputs(plain, batch.clone())[1], plain(batch.clone())["value_target"]
+
+
 def test_quarter_turn_augmentation_fits_v_on_turned_copies_of_the_next_states():
     """Each row's V input (real and predicted next state) is its stored heightmap turned by one whole quarter-turn
     count, the same for both; over a seeded batch all four counts occur; the targets do not move."""
     loss = make_loss(value_augmentation="quarter_turns")
     batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
-    torch.manual_seed(3)
-    out = loss(batch.clone())
-    real, predicted = v_inputs(loss, batch, seed=3)
+    out, real, predicted, predicted_plain, plain_target = augmented_and_plain(loss, batch)
     stored = batch["next", "heightmap"]
     turns = []
     for row in range(24):
@@ -254,11 +262,9 @@ def test_quarter_turn_augmentation_fits_v_on_turned_copies_of_the_next_states():
         assert len(matches) == 1, f"row {row}: V saw no whole quarter turn of its next state"
         turns.append(matches[0])
     assert set(turns) == {0, 1, 2, 3}
-    plain = make_loss()
-    predicted_plain = v_inputs(plain, batch.clone())[1]
     for row, k in enumerate(turns):  # the prediction is turned by the same count as the real state
         assert torch.equal(predicted[row], predicted_plain[row].rot90(k, (-2, -1)))
-    torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
+    torch.testing.assert_close(out["value_target"], plain_target)
     with pytest.raises(ValueError, match="value_augmentation must be one of"):
         make_loss(value_augmentation="flips")
 
@@ -270,12 +276,8 @@ def test_shift_augmentation_fits_v_on_shifted_copies_of_the_next_states():
     loss = make_loss(value_augmentation="shifts", value_shift=2)
     batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
     batch["next", "heightmap"] = batch["next", "heightmap"] + 0.01  # no zero pixels: a shift shows at the border
-    torch.manual_seed(3)
-    out = loss(batch.clone())
-    real, predicted = v_inputs(loss, batch, seed=3)
+    out, real, predicted, predicted_plain, plain_target = augmented_and_plain(loss, batch)
     stored = batch["next", "heightmap"]
-    plain = make_loss()
-    predicted_plain = v_inputs(plain, batch.clone())[1]
     found = []
     for row in range(24):
         matches = [(dr, dc) for dr in range(-2, 3) for dc in range(-2, 3)
@@ -285,7 +287,7 @@ def test_shift_augmentation_fits_v_on_shifted_copies_of_the_next_states():
         shifted_prediction = geometry.shift(predicted_plain[row:row + 1], torch.tensor([matches[0]]))[0]
         assert torch.equal(predicted[row], shifted_prediction)  # the prediction moved by the same offset
     assert len(set(found)) > 5  # the rows drew different offsets
-    torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
+    torch.testing.assert_close(out["value_target"], plain_target)
     with pytest.raises(ValueError, match="value_shift must be an int >= 1"):
         make_loss(value_augmentation="shifts", value_shift=0)
     with pytest.raises(ValueError, match="value_shift must be an int >= 1"):
@@ -326,12 +328,8 @@ def test_raise_augmentation_fits_v_on_next_states_with_the_tallest_object_raised
     seeded batch all three counts occur; the targets do not move; the option is off (no draw) by default."""
     loss = make_loss(value_raise_levels=2, value_raise_height=0.04)
     batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
-    torch.manual_seed(3)
-    out = loss(batch.clone())
-    real, predicted = v_inputs(loss, batch, seed=3)
+    out, real, predicted, predicted_plain, plain_target = augmented_and_plain(loss, batch)
     stored = batch["next", "heightmap"]
-    plain = make_loss()
-    predicted_plain = v_inputs(plain, batch.clone())[1]
     levels = []
     for row in range(24):
         matches = [n for n in range(3) if torch.equal(
@@ -341,7 +339,7 @@ def test_raise_augmentation_fits_v_on_next_states_with_the_tallest_object_raised
         raised = geometry.raise_tallest(predicted_plain[row:row + 1], torch.tensor([matches[0] * 0.04]), floor=0.02)
         assert torch.equal(predicted[row], raised[0])  # the prediction raised by the same count
     assert set(levels) == {0, 1, 2}
-    torch.testing.assert_close(out["value_target"], plain(batch.clone())["value_target"])
+    torch.testing.assert_close(out["value_target"], plain_target)
     state, images = torch.get_rng_state(), stored[:4]
     assert draw_value_augmentation(None, 4)(images) is images
     assert torch.equal(torch.get_rng_state(), state)  # off: no random draw, so earlier runs replay exactly
