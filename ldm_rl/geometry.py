@@ -514,8 +514,8 @@ def raise_tallest(heightmaps: Tensor, lift: Tensor, floor: float) -> Tensor:
     touch the tallest one are raised with it (one region). The region grows by one 3×3 dilation a step, so the cost
     is the region's diameter in pixels of max-pools over the batch."""
     heightmaps = _check_images(heightmaps, "heightmaps")
-    if heightmaps.dim() != 4 or heightmaps.shape[1] != 1:
-        raise ValueError(f"heightmaps must be [B, 1, H, W], got {tuple(heightmaps.shape)}")
+    if heightmaps.dim() != 4 or heightmaps.shape[1] != 1 or not heightmaps.is_floating_point():
+        raise ValueError(f"heightmaps must be [B, 1, H, W] float metres, got {tuple(heightmaps.shape)} {heightmaps.dtype}")
     b = heightmaps.shape[0]
     if not torch.is_tensor(lift) or tuple(lift.shape) != (b,):
         shape = tuple(lift.shape) if torch.is_tensor(lift) else type(lift).__name__

@@ -416,6 +416,8 @@ def test_raise_tallest_follows_diagonal_contact_and_stops_at_the_floor(seed):
         g.raise_tallest(image, torch.tensor([-0.04]), floor=0.02)
     with pytest.raises(ValueError, match=r"heightmaps must be \[B, 1, H, W\]"):
         g.raise_tallest(image.expand(1, 2, 24, 24), torch.tensor([0.04]), floor=0.02)
+    with pytest.raises(ValueError, match=r"heightmaps must be \[B, 1, H, W\] float metres"):
+        g.raise_tallest(image.long(), torch.tensor([0.04]), floor=0.02)
 
 
 def test_quarter_turns_turn_each_image_by_its_own_count_exactly():
