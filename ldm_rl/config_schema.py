@@ -452,6 +452,8 @@ class AgentConfig:
     value_raise_levels: int = spec(0, ge=0, le=8, doc="ldm: V fitted on next states with the tallest object raised "
                                    "by a random 0..L levels (0 = off)")
     value_raise_height: Optional[float] = spec(None, gt=0, lt=1, doc="ldm: metres of one level of value_raise_levels")
+    value_raise_region: Optional[str] = spec(None, choices=(None, "object", "top"), doc="ldm: what value_raise_levels "
+                                             "raises: everything touching the tallest pixel | its top level only")
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
     termination_head: bool = spec(False, doc="ldm: V composed from a termination head, V = T·R + (1 − T)·W "
                                   "(T fitted on the terminated flag)")
@@ -478,7 +480,7 @@ class AgentConfig:
                 elif node.name != agent and node[key] is not None:
                     found.append(f"{prefix}{key}={_show(node[key])} is set but only agent={agent} uses it "
                                  f"(agent.name={node.name})")
-        for key in ("autocast", "value_augmentation", "value_shift", "value_raise_height"):
+        for key in ("autocast", "value_augmentation", "value_shift", "value_raise_height", "value_raise_region"):
             if node.name != "ldm" and node.get(key) is not None:
                 found.append(f"{prefix}{key}={_show(node[key])} is set but only agent=ldm uses it (agent.name={node.name})")
         if node.get("value_raise_levels"):

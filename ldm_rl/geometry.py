@@ -506,13 +506,16 @@ def shift(images: Tensor, offsets: Tensor) -> Tensor:
     return picked.permute(0, 3, 1, 2) * inside[:, None].to(images.dtype)
 
 
-def raise_tallest(heightmaps: Tensor, lift: Tensor, floor: float) -> Tensor:
+def raise_tallest(heightmaps: Tensor, lift: Tensor, floor: float, band: float | None = None) -> Tensor:
     """Raise the object standing under each heightmap's highest pixel by its own ``lift`` ``[B]`` (metres, ≥ 0), as
     if that many metres of object were slid under it: every pixel above ``floor`` m that is connected (8-neighbours,
     through pixels above ``floor``) to the highest one goes up by ``lift``; the rest is unchanged, and a heightmap
     with nothing above ``floor`` is returned as it is. ``heightmaps`` ``[B, 1, H, W]`` float, metres. Objects that
-    touch the tallest one are raised with it (one region). The region grows by one 3×3 dilation a step, so the cost
-    is the region's diameter in pixels of max-pools over the batch."""
+    touch the tallest one are raised with it (one region). ``band`` (metres > 0, or None = no limit): only pixels
+    within ``band`` of the highest one count (connected through such pixels): the top object alone, slid up as if
+    the lift went in under it, so what leans on the stack below its top (a cube beside a 2-stack, a lower cube's
+    ledge) stays where it is. The region grows by one 3×3 dilation a step, so the cost is the region's diameter in
+    pixels of max-pools over the batch."""
     heightmaps = _check_images(heightmaps, "heightmaps")
     if heightmaps.dim() != 4 or heightmaps.shape[1] != 1 or not heightmaps.is_floating_point():
         raise ValueError(f"heightmaps must be [B, 1, H, W] float metres, got {tuple(heightmaps.shape)} {heightmaps.dtype}")
@@ -524,7 +527,12 @@ def raise_tallest(heightmaps: Tensor, lift: Tensor, floor: float) -> Tensor:
         raise ValueError(f"lift must be >= 0 metres, got min {float(lift.min())}")
     if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not math.isfinite(floor):
         raise ValueError(f"floor must be a finite number of metres, got {floor!r}")
+    if band is not None and (isinstance(band, bool) or not isinstance(band, (int, float)) or not 0 < band < math.inf):
+        raise ValueError(f"band must be a positive number of metres or None, got {band!r}")
     above = heightmaps > floor
+    if band is not None:
+        top = heightmaps.flatten(1).max(1).values.view(b, 1, 1, 1)
+        above &= heightmaps >= top - band
     region = torch.zeros_like(above).flatten(1)
     region[torch.arange(b, device=heightmaps.device), heightmaps.flatten(1).argmax(1)] = True
     region = region.view_as(above) & above

@@ -242,6 +242,10 @@ BAD_COMMANDS = [
     ("train_policy.py", ["agent=fcdqn", "agent.value_raise_levels=2", "agent.value_raise_height=0.04"],
      "error: agent.value_raise_height=0.04 is set but only agent=ldm uses it (agent.name=fcdqn); "
      "agent.value_raise_levels=2 is set but only agent=ldm uses it (agent.name=fcdqn)"),
+    ("train_policy.py", ["agent.value_raise_region=tower"],
+     "error: agent.value_raise_region='tower' is invalid: must be one of null, 'object', 'top'"),
+    ("train_policy.py", ["agent=fcdqn", "agent.value_raise_region=top"],
+     "error: agent.value_raise_region='top' is set but only agent=ldm uses it (agent.name=fcdqn)"),
     ("train_policy.py", ["schedule.updates_per_step=0"], "error: schedule.updates_per_step=0.0 is out of range"),
     ("train_policy.py", ["env=house_building", "env.num_objects=9"],
      "error: env.num_objects=9: ldm_rl/HouseBuilding-v0 takes exactly 3 objects"),

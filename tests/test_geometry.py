@@ -397,6 +397,21 @@ def test_raise_tallest_lifts_the_whole_tallest_object_and_nothing_else():
     assert torch.equal(out[1], stack) and torch.equal(out[2], empty)
 
 
+def test_raise_tallest_with_a_band_lifts_the_top_cube_and_leaves_what_leans_on_the_stack():
+    """A 2-stack with a ledge and a cube leaning on its side: without a band the three are one region and all rise;
+    with a band of half a cube only the top cube's footprint rises (as if cubes were slid in under it)."""
+    image = _scene((3, 3, 6, 0.04), (4, 4, 4, 0.08), (3, 9, 5, 0.04))  # the leaning cube touches the lower one
+    lift = torch.tensor([0.08])
+    whole = g.raise_tallest(image, lift, floor=0.02)
+    top = g.raise_tallest(image, lift, floor=0.02, band=0.02)
+    assert torch.equal((whole - image).abs() > 1e-9, image > 0.02)
+    footprint = _scene((4, 4, 4, 1.0)) > 0
+    assert torch.equal((top - image).abs() > 1e-9, footprint)
+    torch.testing.assert_close(top[footprint], image[footprint] + 0.08)
+    with pytest.raises(ValueError, match="band must be a positive number of metres or None, got 0"):
+        g.raise_tallest(image, lift, floor=0.02, band=0)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_raise_tallest_follows_diagonal_contact_and_stops_at_the_floor(seed):
     """Property: on random scenes of separated cubes, exactly the cubes 8-connected to the highest pixel through

@@ -14,7 +14,8 @@ from hydra import compose, initialize_config_dir
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
 SMOKE = ("experiment=smoke", "agent.return_lower_bound=true", "agent.greedy_ema_decay=0.9",
-         "agent.termination_head=true", "agent.value_raise_levels=2", "agent.value_raise_height=0.04")
+         "agent.termination_head=true", "agent.value_raise_levels=2", "agent.value_raise_height=0.04",
+         "agent.value_raise_region=top")
 
 
 def run(script: str, *overrides: str, cwd=None) -> subprocess.CompletedProcess:

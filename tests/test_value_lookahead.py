@@ -322,23 +322,30 @@ def test_symmetry_augmentation_turns_mirrors_and_shifts_each_next_state():
     assert len({m[0] for m in found}) >= 3 and len({m[2:] for m in found}) >= 4
 
 
-def test_raise_augmentation_fits_v_on_next_states_with_the_tallest_object_raised_by_whole_levels():
+@pytest.mark.parametrize("region, band", [("object", None), ("top", 0.02)])
+def test_raise_augmentation_fits_v_on_next_states_with_the_tallest_object_raised_by_whole_levels(region, band):
     """``value_raise_levels=2``: each row's V input (real and predicted next state) is its stored heightmap with the
-    tallest object raised by 0, 1 or 2 levels of ``value_raise_height`` — the same count for both images; over a
-    seeded batch all three counts occur; the targets do not move; the option is off (no draw) by default."""
-    loss = make_loss(value_raise_levels=2, value_raise_height=0.04)
+    tallest object (``value_raise_region=object``) or its top level (``top``: a band of half a level) raised by 0, 1
+    or 2 levels of ``value_raise_height`` — the same count for both images; over a seeded batch all three counts
+    occur, and the two regions differ; the targets do not move; the option is off (no draw) by default."""
+    loss = make_loss(value_raise_levels=2, value_raise_height=0.04, value_raise_region=region)
     batch = transitions(24, terminated=torch.zeros(24, 1, dtype=torch.bool))
     out, real, predicted, predicted_plain, plain_target = augmented_and_plain(loss, batch)
     stored = batch["next", "heightmap"]
-    levels = []
+    levels, other_region_differs = [], False
     for row in range(24):
-        matches = [n for n in range(3) if torch.equal(
-            real[row], geometry.raise_tallest(stored[row:row + 1], torch.tensor([n * 0.04]), floor=0.02)[0])]
+        matches = [n for n in range(3) if torch.equal(real[row], geometry.raise_tallest(
+            stored[row:row + 1], torch.tensor([n * 0.04]), floor=0.02, band=band)[0])]
         assert len(matches) == 1, f"row {row}: V saw no whole-level raise of its next state"
         levels.append(matches[0])
-        raised = geometry.raise_tallest(predicted_plain[row:row + 1], torch.tensor([matches[0] * 0.04]), floor=0.02)
+        raised = geometry.raise_tallest(predicted_plain[row:row + 1], torch.tensor([matches[0] * 0.04]), floor=0.02,
+                                        band=band)
         assert torch.equal(predicted[row], raised[0])  # the prediction raised by the same count
+        other = geometry.raise_tallest(predicted_plain[row:row + 1], torch.tensor([matches[0] * 0.04]), floor=0.02,
+                                       band=0.02 if band is None else None)
+        other_region_differs |= not torch.equal(predicted[row], other[0])  # the model's blurred edges: not one level
     assert set(levels) == {0, 1, 2}
+    assert other_region_differs, "the two raise regions gave the same images on every row"
     torch.testing.assert_close(out["value_target"], plain_target)
     state, images = torch.get_rng_state(), stored[:4]
     assert draw_value_augmentation(None, 4)(images) is images
@@ -347,6 +354,8 @@ def test_raise_augmentation_fits_v_on_next_states_with_the_tallest_object_raised
         make_loss(value_raise_levels=1)
     with pytest.raises(ValueError, match="value_raise_levels must be an int >= 0"):
         draw_value_augmentation(None, 4, raise_levels=-1, raise_height=0.04)
+    with pytest.raises(ValueError, match=r"value_raise_region must be one of \('object', 'top'\), got 'tower'"):
+        draw_value_augmentation(None, 4, raise_levels=1, raise_height=0.04, raise_region="tower")
 
 
 def test_a_termination_head_is_fitted_on_the_terminated_flag_and_v_only_trains_the_value_head():

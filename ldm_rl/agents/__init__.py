@@ -112,6 +112,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         value_shift=int(agent_cfg.get("value_shift") or 4),
         value_raise_levels=int(agent_cfg.get("value_raise_levels") or 0),
         value_raise_height=agent_cfg.get("value_raise_height"),
+        value_raise_region=str(agent_cfg.get("value_raise_region") or "object"),
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
         q_log_floor=agent_cfg.get("q_log_floor"),
         q_proposal_fit=int(agent_cfg.get("q_proposal_fit") or 0),

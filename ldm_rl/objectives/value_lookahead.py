@@ -59,9 +59,14 @@ def _check_shift(shift) -> int:
     return shift
 
 
-def _check_raise(levels, height) -> tuple[int, float | None]:
+RAISE_REGIONS = ("object", "top")
+
+
+def _check_raise(levels, height, region="object") -> tuple[int, float | None]:
     if isinstance(levels, bool) or not isinstance(levels, int) or levels < 0:
         raise ValueError(f"value_raise_levels must be an int >= 0 (0 = off), got {levels!r}")
+    if region not in RAISE_REGIONS:
+        raise ValueError(f"value_raise_region must be one of {RAISE_REGIONS}, got {region!r}")
     if levels == 0:
         return 0, None
     if isinstance(height, bool) or not isinstance(height, (int, float)) or not (0 < height < 1):
@@ -70,7 +75,7 @@ def _check_raise(levels, height) -> tuple[int, float | None]:
 
 
 def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, raise_levels: int = 0,
-                            raise_height: float | None = None, device=None):
+                            raise_height: float | None = None, raise_region: str = "object", device=None):
     """One random draw per row of augmentation ``kind`` (:data:`VALUE_AUGMENTATIONS`; torch's global RNG), returned
     as ``heightmap [batch, 1, H, W] -> the same, transformed``: apply it to several images of a row (the real and
     the predicted next state) to move them alike. ``None``: the identity. ``"quarter_turns"``: a random quarter
@@ -79,11 +84,14 @@ def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, rai
 
     ``raise_levels`` L > 0 (with any ``kind``): then the tallest object is raised by a random whole number of levels
     in ``[0, L]``, ``raise_height`` metres each (:func:`~ldm_rl.geometry.raise_tallest`, pixels above half a level
-    counted as object), drawn per row and applied to each image of the row."""
+    counted as object), drawn per row and applied to each image of the row. ``raise_region``: ``"object"`` raises
+    everything connected to the highest pixel, ``"top"`` only what lies within half a level of it (the top cube:
+    a cube leaning on the stack stays down)."""
     if kind not in VALUE_AUGMENTATIONS:
         raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {kind!r}")
     _check_shift(shift)
-    raise_levels, raise_height = _check_raise(raise_levels, raise_height)
+    raise_levels, raise_height = _check_raise(raise_levels, raise_height, raise_region)
+    band = raise_height / 2 if raise_levels and raise_region == "top" else None
     turns = torch.randint(4, (batch,), device=device) if kind in ("quarter_turns", "symmetries") else None
     mirror = (torch.rand(batch, device=device) < 0.5).view(batch, 1, 1, 1) if kind == "symmetries" else None
     offsets = (torch.randint(-shift, shift + 1, (batch, 2), device=device) if kind in ("shifts", "symmetries")
@@ -99,7 +107,7 @@ def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, rai
             heightmap = torch.where(mirror, heightmap.transpose(-2, -1), heightmap)
         if offsets is not None:
             heightmap = geometry.shift(heightmap, offsets)
-        return heightmap if lift is None else geometry.raise_tallest(heightmap, lift, floor=raise_height / 2)
+        return heightmap if lift is None else geometry.raise_tallest(heightmap, lift, floor=raise_height / 2, band=band)
     return transform
 
 
@@ -158,6 +166,10 @@ class LookaheadLoss(TransitionLoss):
             (docs/policy.md, "Table 2 (blocks)"); raised towers show it that a loose block beside a tall one is
             not. A task prior, right for stacking; not for tasks whose goal has a height (house building).
         value_raise_height: metres of one level (block stacking: the cube's 0.04 m); needed when L > 0.
+        value_raise_region: ``"object"``: everything connected to the tallest pixel goes up (a cube touching the
+            stack goes up with it); ``"top"``: only what lies within half a level of the top (the top cube), so a
+            cube leaning on a raised stack stays beside it — the scene the ``"object"`` raise never shows V
+            (docs/policy.md, "V fitted on raised towers").
         q_proposal_fit: M in [0, N]: Q is also fitted, at each live next state ``s'``, on the first M of its
             target proposals ``Ā_N(s')`` (the target Q map's best, then the next after inhibition), toward
             ``V⁻(f⁻(s', a'))``, the score the target already computed for them (clamped to ``target_range``):
@@ -205,6 +217,7 @@ class LookaheadLoss(TransitionLoss):
         value_shift: int = 4,
         value_raise_levels: int = 0,
         value_raise_height: float | None = None,
+        value_raise_region: str = "object",
         target_uncertainty_penalty: float = 0.0,
         q_log_floor: float | None = None,
         q_proposal_fit: int = 0,
@@ -220,7 +233,9 @@ class LookaheadLoss(TransitionLoss):
             raise ValueError(f"value_augmentation must be one of {VALUE_AUGMENTATIONS}, got {value_augmentation!r}")
         self.value_augmentation = value_augmentation
         self.value_shift = _check_shift(value_shift)
-        self.value_raise_levels, self.value_raise_height = _check_raise(value_raise_levels, value_raise_height)
+        self.value_raise_levels, self.value_raise_height = _check_raise(value_raise_levels, value_raise_height,
+                                                                        value_raise_region)
+        self.value_raise_region = value_raise_region
         self.return_lower_bound = bool(return_lower_bound)
         if q_target not in ("max", "lookahead"):
             raise ValueError(f"q_target must be 'max' or 'lookahead', got {q_target!r}")
@@ -401,6 +416,7 @@ class LookaheadLoss(TransitionLoss):
         """:func:`draw_value_augmentation` of this loss's ``value_augmentation``, ``value_shift`` and raise."""
         return draw_value_augmentation(self.value_augmentation, batch, shift=self.value_shift,
                                        raise_levels=self.value_raise_levels, raise_height=self.value_raise_height,
+                                       raise_region=self.value_raise_region,
                                        device=device)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
