@@ -226,6 +226,7 @@ class LossConfig:
     gamma: float = spec(ge=0, doc="focal exponent")
     class_weights: Any = MISSING  # null | "auto" | list of K floats (checked below)
     label_smoothing: float = spec(0.0, ge=0, lt=1, doc="label smoothing epsilon")
+    gripper_symmetries: bool = spec(False, doc="LDM only: train on the four mirrors of the gripper's frame")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
@@ -365,6 +366,8 @@ class TrainDynamicsConfig(RunSettings):
         elif anchor is not None and not anchor < node.env.max_height:
             found.append(f"model.height_anchor={_show(anchor)} must be below env.max_height={_show(node.env.max_height)} "
                          "(metres of the top depth class)")
+        if node.loss.get("gripper_symmetries") and node.model.name != "ldm":
+            found.append(f"loss.gripper_symmetries=true mirrors the LDM's gripper-aligned frame; model={node.model.name} has none")
         return found
 
 

@@ -53,6 +53,7 @@ __all__ = [
     "rotate",
     "quarter_turns",
     "shift",
+    "mirror_crops",
     "raise_tallest",
     "rotate_stack",
     "unrotate_stack",
@@ -504,6 +505,26 @@ def shift(images: Tensor, offsets: Tensor) -> Tensor:
     picked = images[torch.arange(b, device=images.device)[:, None, None], :,
                     rows.clamp(0, h - 1)[:, :, None], cols.clamp(0, w - 1)[:, None, :]]  # [B, H, W, C]
     return picked.permute(0, 3, 1, 2) * inside[:, None].to(images.dtype)
+
+
+def mirror_crops(crops: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
+    """Mirror each of ``[B, C, d, d]`` action-centred crops (even d, the action pixel at ``[d//2, d//2]`` as
+    :func:`crop` puts it) about the action pixel: across its row axis where ``rows`` ``[B]`` bool is set (pixel row
+    i -> d − i), across its column axis where ``cols`` is (both: the half turn). An exact permutation that keeps the
+    action pixel in place, and its own inverse; row / column 0, whose mirror lies outside the crop, stays. On the
+    gripper-aligned crops of the LDM these are the symmetries of a parallel-jaw gripper."""
+    crops = _check_images(crops, "crops")
+    if crops.dim() != 4 or crops.shape[-1] != crops.shape[-2] or crops.shape[-1] % 2:
+        raise ValueError(f"crops must be [B, C, d, d] with even d, got {tuple(crops.shape)}")
+    b = crops.shape[0]
+    for name, flags in (("rows", rows), ("cols", cols)):
+        if not torch.is_tensor(flags) or flags.dtype != torch.bool or tuple(flags.shape) != (b,):
+            shape = tuple(flags.shape) if torch.is_tensor(flags) else type(flags).__name__
+            raise ValueError(f"{name} must be a [{b}] bool tensor (one flag per crop), got {shape}")
+    d = crops.shape[-1]
+    source = (d - torch.arange(d, device=crops.device)) % d  # i -> d − i, 0 -> 0
+    out = torch.where(rows.to(crops.device).view(b, 1, 1, 1), crops[:, :, source], crops)
+    return torch.where(cols.to(crops.device).view(b, 1, 1, 1), out[:, :, :, source], out)
 
 
 def raise_tallest(heightmaps: Tensor, lift: Tensor, floor: float, band: float | None = None) -> Tensor:

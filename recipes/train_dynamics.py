@@ -182,7 +182,8 @@ def train(cfg: DictConfig) -> dict:
     if class_weights is not None and not isinstance(class_weights, str):
         class_weights = torch.tensor(list(class_weights), dtype=torch.float32)
     loss = LDMLoss(model, gamma=float(cfg.loss.gamma), class_weights=class_weights,
-                   label_smoothing=float(cfg.loss.label_smoothing)).to(device)
+                   label_smoothing=float(cfg.loss.label_smoothing),
+                   gripper_symmetries=bool(cfg.loss.get("gripper_symmetries", False))).to(device)
     settings = MetricSettings(max_height=max_height, num_classes=model.num_classes, num_rotations=model.num_rotations,
                               **OmegaConf.to_container(cfg.dynamics.metrics))
     label, task = model_label(cfg.model), _env_choice()

@@ -216,6 +216,8 @@ BAD_COMMANDS = [
      "error: demos.num_steps=5000 and demos.num_episodes=3 are both set: give exactly one (e.g. demos.num_steps=null "
      "demos.num_episodes=3)"),
     ("train_dynamics.py", ["dynamics.iteration=300"], "Key 'iteration' not in 'DynamicsConfig'"),
+    ("train_dynamics.py", ["model=naive", "loss.gripper_symmetries=true"],
+     "error: loss.gripper_symmetries=true mirrors the LDM's gripper-aligned frame; model=naive has none"),
     ("train_dynamics.py", ["dynamics.data=demos/typo"], "error: dynamics.data='demos/typo' is invalid: must be null or an existing path"),
     ("train_dynamics.py", ["resume=true"], "error: resume=true continues a run in its folder: add hydra.run.dir="),
     ("generate_demos.py", ["resume=true"], "error: resume=true: generate_demos has nothing to resume"),

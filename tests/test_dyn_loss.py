@@ -73,3 +73,50 @@ def test_loss_decreases_when_overfitting_a_tiny_batch():
             opt.step()
         loss.eval()
         assert loss(td)["loss_dynamics"].item() < 0.5 * first
+
+
+def test_gripper_symmetries_show_each_sample_mirrored_and_write_logits_for_the_untouched_one():
+    """Each sample reaches the network as one of the four mirrors of its own crop and in-hand image (the same for
+    both), the loss is the focal loss against the equally mirrored target, and the written logits, mirrored
+    back, are what the network says about the untouched transition's frame. Eval mode is the plain loss."""
+    from ldm_rl import geometry
+
+    model = tiny_model().train()
+    loss = LDMLoss(model, gamma=2.0, class_weights=None, write_logits=True, gripper_symmetries=True).train()
+    td = transitions(32, seed=1)
+    gen = torch.Generator().manual_seed(1)  # noise on every pixel: no crop equals a mirror of itself
+    for key in ("heightmap", "in_hand", ("next", "heightmap")):
+        td.set(key, td.get(key) + 0.02 * torch.rand(td.get(key).shape, generator=gen))
+    flat = lambda key: td.get(key).reshape(32, *td.get(key).shape[1:])  # noqa: E731
+    seen, hand, _, _ = model.net_inputs(flat("heightmap"), flat("in_hand"), td.get("action").long())
+    _, target = model.frame_targets(flat("heightmap"), flat(("next", "heightmap")), td.get("action").long())
+    calls = []
+    forward = model.net.forward
+    model.net.forward = lambda *a: calls.append(a) or forward(*a)
+    torch.manual_seed(3)
+    out = loss(td)
+    (frame_in, hand_in, holding_in, _), = calls
+    mirrors = [(r, c) for r in (False, True) for c in (False, True)]
+    used = []
+    for i in range(32):
+        def mirrored(x, r, c):
+            return geometry.mirror_crops(x[i:i + 1], torch.tensor([r]), torch.tensor([c]))[0]
+        match = [m for m in mirrors if torch.equal(frame_in[i], mirrored(seen, *m)) and torch.equal(hand_in[i], mirrored(hand, *m))]
+        assert len(match) == 1, f"sample {i} reached the network as {len(match)} of its four mirrors, not one"
+        used.append(match[0])
+    assert len(set(used)) == 4  # all four symmetries drawn over 32 samples
+    model.net.forward = forward
+    with torch.no_grad():
+        logits = model.net(frame_in, hand_in, holding_in)
+    rows = torch.tensor([r for r, _ in used]); cols = torch.tensor([c for _, c in used])
+    want = focal_loss(logits, geometry.mirror_crops(target, rows, cols)[:, 0], gamma=2.0).mean()
+    torch.testing.assert_close(out["loss_dynamics"].detach(), want, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(td.get("next_logits"), geometry.mirror_crops(logits, rows, cols))
+    loss.eval()
+    plain = LDMLoss(model, gamma=2.0, class_weights=None).eval()
+    torch.testing.assert_close(loss(td)["loss_dynamics"], plain(td)["loss_dynamics"])
+
+
+def test_gripper_symmetries_refuse_the_naive_models_global_frame():
+    with pytest.raises(ValueError, match="gripper_symmetries needs the LDM's gripper-aligned local frame, got frame='global'"):
+        LDMLoss(tiny_model(name="naive"), gripper_symmetries=True)

@@ -375,6 +375,31 @@ def test_shift_moves_each_image_by_its_own_offset_and_fills_the_border_with_zero
         g.shift(images, offsets[:, :1])
 
 
+@pytest.mark.parametrize("size", [24, 64])
+def test_mirror_crops_is_an_involution_that_keeps_the_action_pixel_and_mirrors_about_it(size):
+    gen = torch.Generator().manual_seed(size)
+    crops = torch.rand(4, 2, size, size, generator=gen)
+    rows, cols = torch.tensor([False, True, False, True]), torch.tensor([False, False, True, True])
+    out = g.mirror_crops(crops, rows, cols)
+    c = size // 2
+    assert torch.equal(out[0], crops[0])
+    assert torch.equal(out[:, :, c, c], crops[:, :, c, c])  # the action pixel stays
+    for i, j in ((c - 5, c + 3), (1, size - 1), (c + 7, 2)):  # pixel (i, j) lies at offset (i − c, j − c)
+        mi, mj = (size - i) % size, (size - j) % size  # the mirrored offset
+        assert torch.equal(out[1, :, i, j], crops[1, :, mi, j])
+        assert torch.equal(out[2, :, i, j], crops[2, :, i, mj])
+        assert torch.equal(out[3, :, i, j], crops[3, :, mi, mj])
+    assert torch.equal(g.mirror_crops(out, rows, cols), crops)  # its own inverse
+    # the half turn of a crop is its 180° rotation about the action pixel (rot90 twice), but for row / column 0
+    half = g.mirror_crops(crops, torch.ones(4, dtype=torch.bool), torch.ones(4, dtype=torch.bool))
+    turned = torch.rot90(crops, 2, (-2, -1)).roll((1, 1), (-2, -1))
+    assert torch.equal(half[..., 1:, 1:], turned[..., 1:, 1:])
+    with pytest.raises(ValueError, match=r"even d, got \(4, 2, 5, 5\)"):
+        g.mirror_crops(torch.zeros(4, 2, 5, 5), rows, cols)
+    with pytest.raises(ValueError, match=r"rows must be a \[4\] bool tensor"):
+        g.mirror_crops(crops, rows.long(), cols)
+
+
 def _scene(*boxes, size=24):
     """[1, 1, size, size] heightmap of axis-aligned boxes (row0, col0, side, height m)."""
     image = torch.zeros(1, 1, size, size)

@@ -71,7 +71,8 @@ def _dynamics_loss(loss_cfg: Mapping[str, Any], dynamics):
     if class_weights is not None and not isinstance(class_weights, str):
         class_weights = torch.tensor(list(class_weights), dtype=torch.float32)
     return LDMLoss(dynamics, gamma=float(loss_cfg.get("gamma", 2.0)), class_weights=class_weights,
-                   label_smoothing=float(loss_cfg.get("label_smoothing", 0.0)), write_logits=True)
+                   label_smoothing=float(loss_cfg.get("label_smoothing", 0.0)), write_logits=True,
+                   gripper_symmetries=bool(loss_cfg.get("gripper_symmetries", False)))
 
 
 def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):

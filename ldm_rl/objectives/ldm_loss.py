@@ -9,6 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
+from ldm_rl import geometry
 from ldm_rl.keys import ACTION, HEIGHTMAP, HOLDING, IN_HAND, NEXT_LOGITS, next_key, require_keys
 from ldm_rl.objectives.focal import depth_class_weights, focal_loss
 from ldm_rl.world_model.core import DynamicsModel, channel_argmax, validate_state_action
@@ -35,6 +36,12 @@ class LDMLoss(LossModule):
         label_smoothing: ε of the smoothed target distribution, default 0.
         write_logits: also write the detached frame logits ``[*B, K, S, S]`` into the input under
             ``next_logits`` (the agent derives the predicted next state from them: no second LDM pass).
+        gripper_symmetries: in training mode, show the network each transition under one of the four symmetries of
+            a parallel-jaw gripper, drawn per sample (identity, the mirror across either axis of its frame, the half
+            turn: :func:`ldm_rl.geometry.mirror_crops`), applied alike to the crop it sees, the in-hand image and the
+            target crop; the written logits are mirrored back, so they predict the untouched transition. Mirrored
+            physics is physics, so each transition counts up to four times (not in the paper). The LDM's
+            gripper-aligned frame only: a Naive model raises.
 
     Input: a batch ``[*B]`` (not empty) of transitions with the keys of :attr:`in_keys` (heightmap,
     in_hand, holding, action, ``("next", "heightmap")``), e.g. a replay-buffer sample; a missing key or an
@@ -58,11 +65,14 @@ class LDMLoss(LossModule):
     tensor_keys: _AcceptedKeys
 
     def __init__(self, dynamics: DynamicsModel, *, gamma: float = 2.0, class_weights=None, label_smoothing: float = 0.0,
-                 write_logits: bool = False) -> None:
+                 write_logits: bool = False, gripper_symmetries: bool = False) -> None:
         super().__init__()
         if gamma < 0 or not 0.0 <= label_smoothing < 1.0:
             raise ValueError(f"need gamma >= 0 and label_smoothing in [0, 1), got {gamma}, {label_smoothing}")
+        if gripper_symmetries and dynamics.frame != "local":
+            raise ValueError(f"gripper_symmetries needs the LDM's gripper-aligned local frame, got frame={dynamics.frame!r}")
         self.dynamics = dynamics
+        self.gripper_symmetries = bool(gripper_symmetries)
         self.gamma, self.label_smoothing = float(gamma), float(label_smoothing)
         self.write_logits = bool(write_logits)
         k = dynamics.num_classes
@@ -102,13 +112,23 @@ class LDMLoss(LossModule):
         )
         if not batch:
             raise ValueError("LDMLoss needs a batched tensordict (non-empty batch_size)")
-        logits = self.dynamics(heightmap, tensordict.get(k.in_hand), holding, action)
-        if self.write_logits:
-            tensordict.set(k.next_logits, logits.detach())
-        logits = logits.reshape(-1, *logits.shape[-3:])  # [N, K, S, S]
-        flat_action = action.reshape(-1, 3).long()
+        in_hand, flat_action = tensordict.get(k.in_hand), action.reshape(-1, 3).long()
         before, target = self.dynamics.frame_targets(heightmap.reshape(-1, *heightmap.shape[-3:]),
                                                      next_heightmap.reshape(-1, *next_heightmap.shape[-3:]), flat_action)
+        if self.gripper_symmetries and self.training:
+            seen, hand, extra, _ = self.dynamics.net_inputs(heightmap.reshape(-1, *heightmap.shape[-3:]),
+                                                            in_hand.reshape(-1, *in_hand.shape[-3:]), flat_action)
+            rows, cols = torch.randint(0, 2, (2, seen.shape[0]), device=seen.device).bool()
+            mirror = lambda x: geometry.mirror_crops(x, rows, cols)  # noqa: E731  (its own inverse)
+            logits = self.dynamics.net(mirror(seen), mirror(hand), holding.reshape(-1), extra)  # [N, K, S, S]
+            before, target = mirror(before), mirror(target)
+            if self.write_logits:
+                tensordict.set(k.next_logits, mirror(logits.detach()).reshape(*batch, *logits.shape[1:]))
+        else:
+            logits = self.dynamics(heightmap, in_hand, holding, action)
+            if self.write_logits:
+                tensordict.set(k.next_logits, logits.detach())
+            logits = logits.reshape(-1, *logits.shape[-3:])  # [N, K, S, S]
         before, target = before[:, 0], target[:, 0]
         if self.auto_weights and self.training:
             self.class_counts += torch.bincount(target.flatten().long(), minlength=self.dynamics.num_classes).to(self.class_counts)

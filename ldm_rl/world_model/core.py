@@ -302,11 +302,19 @@ class DynamicsModel(nn.Module):
         return torch.stack((blob, cos2.expand(n, hw, hw), sin2.expand(n, hw, hw)), dim=1)
 
     # ---------------------------------------------------------------- model
-    def _flat_logits(self, heightmap, in_hand, holding, action):
+    def net_inputs(self, heightmap, in_hand, action):
+        """What the network reads for a flat batch (``[N,1,128,128]`` m, ``[N,1,24,24]`` m, ``[N,3]``): ``(seen, hand,
+        extra, frame)``: the frame it sees ``[N,1,S,S]`` uint8 (height-anchored where set), the in-hand classes
+        ``[N,1,24,24]`` uint8, the Naive model's action planes ``[N,3,128,128]`` (None for the LDM), and the crop's
+        absolute classes ``[N,1,S,S]`` (what the prediction is pasted over)."""
         frame = self.frame_classes(heightmap, action)
         extra = self.action_planes(action) if self.frame == "global" else None
         seen = frame if self.height_anchor is None else self.frame_classes(heightmap, action, self.frame_shift(heightmap, action))
-        return self.net(seen, self.classes(in_hand), holding, extra), frame
+        return seen, self.classes(in_hand), extra, frame
+
+    def _flat_logits(self, heightmap, in_hand, holding, action):
+        seen, hand, extra, frame = self.net_inputs(heightmap, in_hand, action)
+        return self.net(seen, hand, holding, extra), frame
 
     def forward(self, heightmap, in_hand, holding, action) -> torch.Tensor:
         """Frame logits ``[*B, K, S, S]`` for a state-action batch (see :func:`validate_state_action`)."""
