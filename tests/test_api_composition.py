@@ -247,7 +247,8 @@ def test_the_documented_ldm_loss_defaults_are_the_codes():
 
     defaults = {k: p.default for k, p in inspect.signature(LDMLoss.__init__).parameters.items()
                 if p.default is not inspect.Parameter.empty}
-    assert defaults == {"gamma": 2.0, "class_weights": None, "label_smoothing": 0.0, "write_logits": False}
+    assert defaults == {"gamma": 2.0, "class_weights": None, "label_smoothing": 0.0, "write_logits": False,
+                        "gripper_symmetries": False}
     shown = re.search(r"LDMLoss\(model, (.+?)\)\n", API_DOC.read_text()).group(1)
     assert dict(kv.split("=") for kv in shown.split(", ")) == {k: repr(v) for k, v in defaults.items()}
     assert "default ``None`` = uniform" in LDMLoss.__doc__
