@@ -167,7 +167,6 @@ def auroc(scores: torch.Tensor, labels: torch.Tensor) -> float:
     order = scores.argsort()
     sorted_scores = scores[order]
     ranks = torch.empty_like(scores)
-    ranks[order] = torch.arange(1, scores.numel() + 1, dtype=scores.dtype)
     # tied scores share the mean of their ranks
     _, group, counts = torch.unique_consecutive(sorted_scores, return_inverse=True, return_counts=True)
     first = torch.cumsum(counts, 0) - counts + 1
