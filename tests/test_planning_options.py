@@ -64,6 +64,14 @@ def test_auroc_equals_the_pairwise_count_with_ties_as_halves():
         auroc(torch.arange(3.0), torch.ones(2, dtype=torch.bool))
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_auroc_on_cuda_matches_cpu():  # the Table 1 evaluation on a GPU once died here (a CPU tensor in the ranks)
+    g = torch.Generator().manual_seed(1)
+    scores = torch.randint(0, 5, (40,), generator=g).float()
+    labels = torch.rand(40, generator=g) < 0.4
+    assert auroc(scores.cuda(), labels.cuda()) == pytest.approx(auroc(scores, labels))
+
+
 def test_lookahead_entropy_is_the_entropy_of_each_candidates_prediction(nets):
     q, dynamics, value = nets
     s = scenes(2)
