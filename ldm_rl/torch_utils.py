@@ -1,4 +1,5 @@
-"""Torch helpers every floor above uses: seeding, devices, threads, eval-mode blocks, the fused Adam."""
+"""Torch helpers every floor above uses: seeding, devices, threads, eval-mode and swapped-weight blocks, the fused
+Adam."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
-__all__ = ["seed_everything", "resolve_device", "set_threads", "eval_mode", "make_adam"]
+__all__ = ["seed_everything", "resolve_device", "set_threads", "eval_mode", "swapped_parameters", "make_adam"]
 
 
 def seed_everything(seed: int) -> torch.Generator:
@@ -63,6 +64,22 @@ def eval_mode(*modules: torch.nn.Module) -> Iterator[None]:
     finally:
         for m, training in flags:
             m.training = training
+
+
+@contextlib.contextmanager
+def swapped_parameters(module: torch.nn.Module, params) -> Iterator[None]:
+    """Run the block with ``module`` carrying ``params`` (a TensorDict of its parameters and buffers, e.g. a
+    target copy), then give it back its own weights, whatever way the block ends.
+
+    tensordict's own ``with params.to_module(module):`` leaves ``params`` in the module when the block raises
+    an Exception, and turns SystemExit / KeyboardInterrupt (a second Ctrl-C or SIGTERM) into "Converting a
+    tensordict to boolean value is not permitted"; this block does neither.
+    """
+    own = params.to_module(module, return_swap=True, preserve_module_state=False)
+    try:
+        yield
+    finally:
+        own.to_module(module, preserve_module_state=False)
 
 
 def make_adam(params, *, lr: float, weight_decay: float = 0.0) -> torch.optim.Adam:

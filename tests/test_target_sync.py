@@ -8,7 +8,7 @@ from torchrl.objectives import HardUpdate
 
 from ldm_rl.agents.base import is_target_entry
 from ldm_rl.objectives import LookaheadLoss, TargetSync
-from ldm_rl.torch_utils import eval_mode
+from ldm_rl.torch_utils import eval_mode, swapped_parameters
 from policy_helpers import tiny_networks, transitions
 from test_baselines import batch, make_agent
 
@@ -36,7 +36,7 @@ def _online_and_target(loss) -> dict[str, tuple[list[torch.Tensor], list[torch.T
         network = name[len("target_"):-len("_params")]
         module = getattr(loss, network)
         online = _outputs(module, probe)
-        with getattr(loss, name).to_module(module, preserve_module_state=False):
+        with swapped_parameters(module, getattr(loss, name)):
             target = _outputs(module, probe)
         out[network] = (online, target)
     return out
@@ -160,3 +160,32 @@ def test_full_state_dicts_still_load_and_a_foreign_key_is_refused():
     assert all(torch.equal(fresh.state_dict()[k], v) for k, v in trained.state_dict().items())
     with pytest.raises(RuntimeError, match="unexpected"):
         fresh.load_policy_state_dict({**trained.policy_state_dict(), "planner.bogus": torch.zeros(1)})
+
+
+@pytest.mark.parametrize("name", AGENT_NAMES)
+def test_a_second_signal_inside_the_targets_exits_with_its_code_and_the_online_weights_back(name, monkeypatch):
+    """A SystemExit raised while the target weights are swapped in (the second SIGTERM of a stopping run) leaves
+    as itself, not as tensordict's "Converting a tensordict to boolean value", and the online weights return."""
+    loss = make_agent(name).loss
+    # the first network each target computation runs: RS predicts with the LDM, the others start with Q
+    network_name, method = ("dynamics", "predict") if name == "rs" else ("q_network", "forward")
+    network, target_params = getattr(loss, network_name), getattr(loss, f"target_{network_name}_params")
+    first_name = next(iter(dict(network.named_parameters())))
+    online_first = network.get_parameter(first_name)
+    target_first = target_params.get(tuple(first_name.split(".")))
+    seen = []
+
+    def stopped(*args, **kwargs):
+        current = network
+        for part in first_name.split("."):
+            current = getattr(current, part)
+        seen.append(current.data_ptr() == target_first.data_ptr())
+        raise SystemExit(143)
+
+    monkeypatch.setattr(network, method, stopped)
+    with pytest.raises(SystemExit) as stop:
+        loss.targets(batch(4, 0))
+    assert stop.value.code == 143
+    assert seen == [True]  # it was raised with the target weights in the network
+    assert network.get_parameter(first_name) is online_first
+    assert target_params.get(tuple(first_name.split("."))) is target_first

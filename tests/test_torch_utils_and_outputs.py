@@ -106,3 +106,22 @@ def test_make_adam_is_fused_adam_with_the_same_update_rule_and_every_agent_uses_
             cfg = compose(config_name="train_policy", overrides=["experiment=smoke", f"agent={name}"])
         agent = build_agent(cfg, 0.25)
         assert agent.optimizers and all(opt.defaults["fused"] is True for opt in agent.optimizers.values()), name
+
+
+@pytest.mark.parametrize("raised", [ValueError("bad batch"), SystemExit(143)])
+def test_swapped_parameters_gives_the_module_its_weights_back_however_the_block_ends(raised):
+    from tensordict import TensorDict
+
+    net = torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.BatchNorm1d(2))
+    own = net[0].weight
+    other = TensorDict.from_module(net).data.clone()
+    other["0", "weight"].fill_(3.0)
+    x = torch.ones(1, 2)
+    with torch_utils.swapped_parameters(net, other):
+        assert torch.equal(net[0](x), torch.full((1, 2), 6.0) + net[0].bias)  # the other weights are in use
+    assert net[0].weight is own
+    with pytest.raises(type(raised)):
+        with torch_utils.swapped_parameters(net, other):
+            raise raised
+    assert net[0].weight is own and isinstance(net[0].weight, torch.nn.Parameter)
+    assert net[1].running_var is not other["1", "running_var"]

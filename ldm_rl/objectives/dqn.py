@@ -17,7 +17,7 @@ from torch import nn
 from ldm_rl import keys
 from ldm_rl.objectives.q_scale import QScale
 from ldm_rl.objectives.transition_loss import TransitionLoss
-from ldm_rl.torch_utils import eval_mode
+from ldm_rl.torch_utils import eval_mode, swapped_parameters
 
 __all__ = ["SpatialDQNLoss"]
 
@@ -65,8 +65,7 @@ class SpatialDQNLoss(TransitionLoss):
         if rows.numel():
             state = [tensordict.get((keys.NEXT, key)).index_select(0, rows) for key in (k.heightmap, k.in_hand)]
             holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1, 1).bool().index_select(0, rows)
-            with self.target_q_network_params.to_module(self.q_network, preserve_module_state=False), \
-                    eval_mode(self.q_network):
+            with swapped_parameters(self.q_network, self.target_q_network_params), eval_mode(self.q_network):
                 q_next[rows] = self.q_scale.decode(self.q_network(*state, holding).flatten(1).amax(1, keepdim=True))
         return self.lower_bounded(reward + self.gamma * q_next, tensordict)
 

@@ -22,6 +22,7 @@ from ldm_rl.objectives.reward_head import predicted_next_state
 from ldm_rl.objectives.transition_loss import TransitionLoss
 from ldm_rl.planning.lookahead import shooting_scores
 from ldm_rl.planning.sampling import NearObjectSampler
+from ldm_rl.torch_utils import swapped_parameters
 
 __all__ = ["RandomShootingLoss"]
 
@@ -86,8 +87,8 @@ class RandomShootingLoss(TransitionLoss):
             in_hand = tensordict.get((keys.NEXT, k.in_hand)).index_select(0, rows)
             holding = tensordict.get((keys.NEXT, k.holding)).reshape(-1, 1).bool().index_select(0, rows)
             candidates = self.rule(heightmap, self.num_target_candidates)
-            with self.target_value_network_params.to_module(self.value_network, preserve_module_state=False), \
-                    self.target_dynamics_params.to_module(self.dynamics, preserve_module_state=False):
+            with swapped_parameters(self.value_network, self.target_value_network_params), \
+                    swapped_parameters(self.dynamics, self.target_dynamics_params):
                 scores = shooting_scores(self.dynamics, self.value_network, heightmap, in_hand, holding, candidates,
                                          gamma=self.gamma, chunk_size=self.chunk_size)
             target[rows] = scores.amax(1, keepdim=True)

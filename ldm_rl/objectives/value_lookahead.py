@@ -46,7 +46,7 @@ from ldm_rl.objectives.reward_head import predicted_next_state
 from ldm_rl.objectives.transition_loss import TransitionKeys, TransitionLoss
 from ldm_rl.planning.lookahead import lookahead
 from ldm_rl.planning.sampling import sample_candidates
-from ldm_rl.torch_utils import eval_mode
+from ldm_rl.torch_utils import eval_mode, swapped_parameters
 
 __all__ = ["LookaheadLoss", "VALUE_AUGMENTATIONS", "draw_value_augmentation"]
 
@@ -280,10 +280,9 @@ class LookaheadLoss(TransitionLoss):
     @contextlib.contextmanager
     def target_networks(self):
         """Within the block ``self.q_network`` / ``value_network`` / ``dynamics`` carry the target weights."""
-        # plain nested ``with``: ExitStack would test the TensorDict that ``to_module``'s exit returns
-        with self.target_q_network_params.to_module(self.q_network, preserve_module_state=False), \
-                self.target_value_network_params.to_module(self.value_network, preserve_module_state=False), \
-                self.target_dynamics_params.to_module(self.dynamics, preserve_module_state=False):
+        with swapped_parameters(self.q_network, self.target_q_network_params), \
+                swapped_parameters(self.value_network, self.target_value_network_params), \
+                swapped_parameters(self.dynamics, self.target_dynamics_params):
             yield
 
     def targets_changed(self) -> None:
