@@ -310,6 +310,36 @@ def test_only_keeps_the_named_lines_and_refuses_a_name_that_is_no_line(tmp_path,
     assert stop.value.code == 2 and "--only 'Bin packing: LDM [old]': no such line" in capsys.readouterr().err
 
 
+def test_a_crowded_panel_keeps_its_lines_apart_and_its_legend_off_the_curves(tmp_path):
+    import matplotlib.pyplot as plt
+
+    def keep(stem, agent, task):
+        with open(tmp_path / f"{stem}_curve.csv", "w", newline="") as f:
+            f.write("updates,episodes,success_rate\n0,0,0.0\n10,20,0.5\n")
+        (tmp_path / f"{stem}_final_metrics.json").write_text(json.dumps(
+            {"task": task, "num_objects": 3, "agent": agent, "seed": 0, "episodes": 20, "success_rate": 0.5}))
+
+    stacking, house = "ldm_rl/BlockStacking-v0", "ldm_rl/HouseBuilding-v0"
+    for k in range(20):  # more variants of one agent than any fixed palette of ten
+        keep(f"curves_block_stacking_ldm_seed0_v{k:02d}", "ldm", stacking)
+    keep("curves_block_stacking_fcdqn_seed0_a", "fcdqn", stacking)
+    keep("curves_house_building_ldm_seed0_v03", "ldm", house)  # a label met before, in another panel
+    keep("curves_house_building_ldm_seed0_v05", "ldm", house)
+    fig, _ = plot_learning_curves.draw(plot_learning_curves.group(
+        [plot_learning_curves.read_result(c) for c in sorted(tmp_path.glob("*_curve.csv"))]))
+    fig.canvas.draw()
+    crowded, other = fig.axes[0], fig.axes[1]
+    colours = [(tuple(plt.matplotlib.colors.to_rgba(line.get_color())), line.get_linestyle())
+               for line in crowded.get_lines()]
+    assert len(colours) == 21 and len(set(colours[:16])) == 16  # the palette's 16 colours, none repeated
+    assert crowded.get_lines()[-1].get_linestyle() == "--"  # FC-DQN dashed beside the LDM's solid lines
+    legend_left = crowded.get_legend().get_window_extent().x0
+    assert legend_left > crowded.get_window_extent().x1  # beside the panel, not over its curves
+    by_label = {line.get_label().split(",")[0]: line.get_color() for line in crowded.get_lines()}
+    assert other.get_lines()[0].get_color() == by_label["LDM [v03]"]  # a label keeps its colour across panels
+    plt.close(fig)
+
+
 def test_a_results_folder_names_its_lines_by_tag_and_reads_the_final_weights(tmp_path):
     def keep(stem, seed, points, final):
         with open(tmp_path / f"{stem}_curve.csv", "w", newline="") as f:

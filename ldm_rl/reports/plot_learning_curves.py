@@ -48,6 +48,10 @@ TASKS = {
 }
 # line order, names and colours of the agents (conf/agent/*.yaml)
 AGENTS = {"ldm": ("LDM", "C0"), "fcdqn": ("FC-DQN", "C1"), "rs": ("RS", "C2"), "dynaq": ("Dyna-Q", "C3")}
+# one line style per agent, so that an agent's variants read apart from another agent's in a crowded panel
+LINE_STYLES = {"ldm": "-", "fcdqn": "--", "rs": ":", "dynaq": "-."}
+# a panel with more lines than this gets its legend beside it, outside the axes, where it hides no curve
+LEGEND_INSIDE_MAX = 4
 # config keys (or groups, by prefix) that set a run's seed, budget or bookkeeping: they tell the seeds of one
 # experiment apart, or how long and where it ran, but not what it learns up to the shorter run's end
 BUDGET_KEYS = ("seed", "resume", "schedule.total_episodes", "schedule.max_wall_clock_s", "schedule.checkpoint_every",
@@ -241,6 +245,21 @@ def panel_title(task: str, num_objects: int) -> str:
 
 def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
     """Draw the figure to ``png`` and write the plotted points to ``csv_path``; returns the CSV rows."""
+    import matplotlib.pyplot as plt
+
+    fig, rows = draw(panels)
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    return rows
+
+
+def draw(panels: dict):
+    """The figure, a panel per (task, object count), and its points as CSV rows: ``(figure, rows)``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -249,24 +268,34 @@ def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
     n = len(panels)
     ncols = n if n <= 2 else 2
     nrows = math.ceil(n / ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.9 * nrows), squeeze=False)
+    legend_outside = max(len(lines) for lines in panels.values()) > LEGEND_INSIDE_MAX
+    panel_width = 5.2 + 3.0 * legend_outside  # room for the legend beside each panel
+    fig, axes = plt.subplots(nrows, ncols, figsize=(panel_width * ncols, 3.9 * nrows), squeeze=False)
     rows: list[dict] = []
-    spare_colours = iter(f"C{i}" for i in range(4, 10))
-    colours: dict[str, str] = {}
+    # variants' colours: tab10's last six, then tab20's lighter shades; a label keeps its colour in every panel
+    tab20 = plt.get_cmap("tab20").colors
+    palette = [f"C{i}" for i in range(4, 10)] + [tab20[i] for i in range(1, 20, 2)]
+    colours: dict[str, object] = {}
     for ax, ((task, objects), lines) in zip(axes.flat, panels.items()):
         per_agent = defaultdict(int)
         for runs in lines.values():
             per_agent[runs[0].agent] += 1
+        taken: list = []
         for label, runs in lines.items():
             agent = runs[0].agent
             if agent in AGENTS and per_agent[agent] == 1:  # an agent's only line in the panel: the agent's colour
                 colour = AGENTS[agent][1]
-            else:  # one of several variants (or an unknown agent): a spare colour, the same in every panel
-                colour = colours.setdefault(label, next(spare_colours, None))
+            else:  # one of several variants (or an unknown agent): its colour of another panel where still free here
+                colour = colours.get(label)
+                if colour is None or colour in taken:
+                    free = [c for c in palette if c not in taken] or palette
+                    colour = colours[label] = free[0]
+            taken.append(colour)
             points = mean_curve(runs)
             xs, means, ses = zip(*points)
             seeds = len(runs)
-            ax.plot(xs, means, "o-", ms=3, color=colour, label=f"{label}, {seeds} seed{'s' * (seeds > 1)}")
+            ax.plot(xs, means, marker="o", ms=3, linestyle=LINE_STYLES.get(agent, "-"), color=colour,
+                    label=f"{label}, {seeds} seed{'s' * (seeds > 1)}")
             if seeds > 1:
                 ax.fill_between(xs, [m - s for m, s in zip(means, ses)], [m + s for m, s in zip(means, ses)],
                                 color=colour, alpha=0.2, linewidth=0)
@@ -278,20 +307,16 @@ def plot(panels: dict, png: Path, csv_path: Path) -> list[dict]:
         ax.set_ylabel("greedy success rate (fraction)")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", fontsize=8)
+        if legend_outside:
+            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
+        else:
+            ax.legend(loc="upper left", fontsize=8)
     for ax in list(axes.flat)[n:]:
         ax.remove()
     title = "Greedy success rate against training episodes (mean ± standard error over seeds)"
     fig.suptitle(title if ncols > 1 else title.replace(" (", "\n("))  # one panel: two lines fit its width
     fig.tight_layout()
-    with atomic_path(png) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
-    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    return rows
+    return fig, rows
 
 
 def _first_reaching(points: list[tuple[float, float, float]], level: float) -> str:
