@@ -255,6 +255,7 @@ class LoggerConfig:
 class NoiseConfig:
     position: float = spec(0.0, ge=0, le=0.1, doc="expert position jitter, metres")
     random_action_prob: float = spec(0.0, ge=0, le=1, doc="probability of a random action")
+    rotation_prob: float = spec(0.0, ge=0, le=1, doc="probability of the expert's position at a random other rotation")
 
 
 @dataclass

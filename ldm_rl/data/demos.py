@@ -109,7 +109,7 @@ def collect_demos(
         seed: episode ``i`` is reset with a seed drawn from ``numpy.random.default_rng(seed)``.
         procedure: ``"direct"`` (the direct planner) or ``"deconstruct"`` (build, deconstruct, replay
             reversed; block stacking and house building only; failed deconstructions are skipped).
-        noise: ``{"position": metres, "random_action_prob": p}`` (default: noiseless).
+        noise: ``{"position": metres, "random_action_prob": p, "rotation_prob": p}`` (default: noiseless).
         progress: show progress (``ldm_rl.run.progress``: a bar with ETA on a terminal, else periodic log lines).
 
     The metadata's ``num_episodes`` / ``success_rate`` describe the episodes collected (before a
@@ -153,7 +153,8 @@ def collect_demos(
         "num_rotations": int(kwargs.get("num_rotations", NUM_ROTATIONS)),
         "max_height": float(env_cfg.get("max_height", type(env).max_height)),
         "procedure": procedure,
-        "noise": {"position": noise.position, "random_action_prob": noise.random_action_prob},
+        "noise": {"position": noise.position, "random_action_prob": noise.random_action_prob,
+                  "rotation_prob": noise.rotation_prob},
         "seed": seed,
         "num_episodes": len(episodes),
         "success_rate": float(np.mean([ep[-1].terminated and ep[-1].reward > 0 for ep in episodes])),

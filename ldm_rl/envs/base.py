@@ -48,17 +48,22 @@ class SpawnError(RuntimeError):
 
 @dataclass(frozen=True)
 class ExpertNoise:
-    """Noise of the scripted expert: per-axis position jitter uniform in ±``position`` metres, and a
-    uniformly random action with probability ``random_action_prob``."""
+    """Noise of the scripted expert: per-axis position jitter uniform in ±``position`` metres, a
+    uniformly random action with probability ``random_action_prob``, and otherwise, with probability
+    ``rotation_prob``, the expert's position at a uniformly random other rotation bin (a grasp across an
+    object's long side: failed picks on objects, which the noiseless expert never shows)."""
 
     position: float = 0.0
     random_action_prob: float = 0.0
+    rotation_prob: float = 0.0
 
     def __post_init__(self):
         if not (self.position >= 0.0 and math.isfinite(self.position)):
             raise ValueError(f"noise.position must be a finite non-negative number of metres, got {self.position!r}")
         if not 0.0 <= self.random_action_prob <= 1.0:
             raise ValueError(f"noise.random_action_prob must be in [0, 1], got {self.random_action_prob!r}")
+        if not 0.0 <= self.rotation_prob <= 1.0:
+            raise ValueError(f"noise.rotation_prob must be in [0, 1], got {self.rotation_prob!r}")
 
 
 @dataclass
@@ -306,8 +311,9 @@ class PickPlaceEnv(gym.Env):
         return self.noisy_action(self.expert_target(), noise)[0]
 
     def noisy_action(self, target: PrimitiveTarget, noise: ExpertNoise | None = None) -> tuple[np.ndarray, bool]:
-        """(``target`` as an action jittered per ``noise``, False) or, with probability
-        ``noise.random_action_prob``, (a uniformly random action, True)."""
+        """(``target`` as an action jittered per ``noise``, False); with probability
+        ``noise.random_action_prob`` (a uniformly random action, True); else with probability
+        ``noise.rotation_prob`` (the jittered action at a uniformly random other rotation bin, True)."""
         noise = noise or self.expert_noise
         rng = self._expert_rng
         if noise.random_action_prob > 0 and rng.random() < noise.random_action_prob:
@@ -315,7 +321,11 @@ class PickPlaceEnv(gym.Env):
         xy = np.array([target.x, target.y])
         if noise.position > 0:
             xy = xy + rng.uniform(-noise.position, noise.position, size=2)
-        return self.pose_to_action(xy[0], xy[1], target.yaw), False
+        action = self.pose_to_action(xy[0], xy[1], target.yaw)
+        if noise.rotation_prob > 0 and self.num_rotations > 1 and rng.random() < noise.rotation_prob:
+            action[2] = (action[2] + rng.integers(1, self.num_rotations)) % self.num_rotations
+            return action, True
+        return action, False
 
     def action_to_target(self, action: np.ndarray) -> PrimitiveTarget:
         """``[row, col, rot]`` -> the metric pose it commands (pixel centre, bin angle)."""
