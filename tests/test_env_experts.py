@@ -80,22 +80,26 @@ def test_expert_noise_changes_actions_and_random_actions_are_flagged():
         env.close()
 
 
-def test_rotation_noise_keeps_the_experts_pixel_and_turns_to_another_bin_at_its_rate():
+@pytest.fixture
+def bin_packing():
     env = gym.make("ldm_rl/BinPacking-v0").unwrapped
-    try:
-        env.reset(seed=0)
-        target = env.expert_target()
-        clean, flagged = env.noisy_action(target, ExpertNoise())
-        assert not flagged
-        turned = [env.noisy_action(target, ExpertNoise(rotation_prob=1.0)) for _ in range(200)]
-        assert all(flag and (a[0], a[1]) == (clean[0], clean[1]) and a[2] != clean[2] for a, flag in turned)
-        assert {int(a[2]) for a, _ in turned} == set(range(env.num_rotations)) - {int(clean[2])}  # every other bin
-        flags = [env.noisy_action(target, ExpertNoise(rotation_prob=0.2))[1] for _ in range(2000)]
-        assert 0.17 < np.mean(flags) < 0.23  # seeded: the expert's rng from reset(seed=0); 3 s.d. ≈ 0.027
-        # physics: the turned grasps are the ones that come up empty (across a brick's long side)
-        steps = [t for seed in (0, 1, 2) for t in run_expert_episode(env, seed, ExpertNoise(rotation_prob=0.5))]
-        turned_failed = [not t.primitive_success for t in steps if not t.is_expert]
-        clean_failed = [not t.primitive_success for t in steps if t.is_expert]
-        assert sum(turned_failed) >= 5 and np.mean(turned_failed) > np.mean(clean_failed) + 0.15
-    finally:
-        env.close()
+    yield env
+    env.close()
+
+
+def test_rotation_noise_keeps_the_experts_pixel_and_turns_to_another_bin_at_its_rate(bin_packing):
+    env = bin_packing
+    env.reset(seed=0)
+    target = env.expert_target()
+    clean, flagged = env.noisy_action(target, ExpertNoise())
+    assert not flagged
+    turned = [env.noisy_action(target, ExpertNoise(rotation_prob=1.0)) for _ in range(200)]
+    assert all(flag and (a[0], a[1]) == (clean[0], clean[1]) and a[2] != clean[2] for a, flag in turned)
+    assert {int(a[2]) for a, _ in turned} == set(range(env.num_rotations)) - {int(clean[2])}  # every other bin
+    flags = [env.noisy_action(target, ExpertNoise(rotation_prob=0.2))[1] for _ in range(2000)]
+    assert 0.17 < np.mean(flags) < 0.23  # seeded: the expert's rng from reset(seed=0); 3 s.d. ≈ 0.027
+    # physics: the turned grasps are the ones that come up empty (across a brick's long side)
+    steps = [t for seed in (0, 1, 2) for t in run_expert_episode(env, seed, ExpertNoise(rotation_prob=0.5))]
+    turned_failed = [not t.primitive_success for t in steps if not t.is_expert]
+    clean_failed = [not t.primitive_success for t in steps if t.is_expert]
+    assert sum(turned_failed) >= 5 and np.mean(turned_failed) > np.mean(clean_failed) + 0.15
