@@ -433,6 +433,9 @@ class AgentConfig:
     lr_decay_every: int = spec(ge=1, doc="updates per LR decay step")
     target_update_interval: int = spec(ge=1, doc="updates between target-network copies")
     q_grad_clip: Optional[float] = spec(None, gt=0, doc="element-wise Q gradient clamp")
+    expert_margin_weight: float = spec(0.0, ge=0, doc="λ of DQfD's large-margin term on the expert rows (0 = off)")
+    expert_margin: float = spec(0.1, gt=0, doc="l: the lead the expert's action keeps over every other (Q's fitted units)")
+    expert_margin_rows: int = spec(4, ge=1, doc="expert rows per batch the margin term reads (a whole-map Q pass each)")
     target_range: Optional[List[float]] = None
     double_value: bool = False
     q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")
@@ -507,6 +510,9 @@ class AgentConfig:
                 found.append(f"{prefix}greedy_ema_model=false is set but agent={node.name} plans with no model")
         if node.name == "rs" and node.get("q_architecture", "fcn") != "fcn":
             found.append(f"{prefix}q_architecture={node.q_architecture} is set but agent=rs builds no Q network")
+        if node.name == "rs" and node.get("expert_margin_weight"):
+            found.append(f"{prefix}expert_margin_weight={_show(node.expert_margin_weight)} is set but agent=rs builds no "
+                         "Q network; set it to 0")
         if node.name == "rs" and node.get("q_log_floor") is not None:
             found.append(f"{prefix}q_log_floor={_show(node.q_log_floor)} is set but agent=rs builds no Q network")
         if node.name == "rs" and node.get("q_pick_min_height"):

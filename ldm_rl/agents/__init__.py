@@ -117,6 +117,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
         q_log_floor=agent_cfg.get("q_log_floor"),
         q_proposal_fit=int(agent_cfg.get("q_proposal_fit") or 0),
+        **_expert_margin(agent_cfg),
     )
     dynamics_loss = _dynamics_loss(cfg["loss"], dynamics)
     return LDMAgent(planner, loss, dynamics_loss, q_grad_clip=agent_cfg.get("q_grad_clip"),
@@ -160,6 +161,13 @@ def _model_and_value(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float)
     return dynamics, dynamics_loss, value_network
 
 
+def _expert_margin(agent_cfg: dict) -> dict:
+    """The Q losses' expert large-margin keys (absent in checkpoints written before them: off)."""
+    return {"expert_margin_weight": float(agent_cfg.get("expert_margin_weight") or 0.0),
+            "expert_margin": float(agent_cfg.get("expert_margin") or 0.1),
+            "expert_margin_rows": int(agent_cfg.get("expert_margin_rows") or 4)}
+
+
 def _optimisation(agent_cfg: dict) -> dict:
     return {"lr": dict(agent_cfg["lr"]), "weight_decay": dict(agent_cfg.get("weight_decay") or {}),
             "lr_decay": float(agent_cfg["lr_decay"]), "lr_decay_every": int(agent_cfg["lr_decay_every"]),
@@ -179,7 +187,8 @@ def build_fcdqn_agent(cfg: Mapping[str, Any], max_height: float):
     q_network = _q_network(cfg, agent_cfg, max_height)
     policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
     loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]), q_log_floor=agent_cfg.get("q_log_floor"),
-                          return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)))
+                          return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)),
+                          **_expert_margin(agent_cfg))
     return FCDQNAgent(policy, loss, q_grad_clip=agent_cfg.get("q_grad_clip"), **_optimisation(agent_cfg))
 
 
@@ -220,7 +229,8 @@ def build_dynaq_agent(cfg: Mapping[str, Any], max_height: float):
     _, dynamics_loss, value_network = _model_and_value(cfg, agent_cfg, max_height)
     policy = QMapPolicy(q_network, tau=_plain(cfg["planner"])["tau"])
     loss = SpatialDQNLoss(q_network, gamma=float(agent_cfg["gamma"]), q_log_floor=agent_cfg.get("q_log_floor"),
-                          return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)))
+                          return_lower_bound=bool(agent_cfg.get("return_lower_bound", False)),
+                          **_expert_margin(agent_cfg))
     return DynaQAgent(policy, loss, dynamics_loss, value_network, imagined_ratio=float(ratio),
                       terminal_reward=float(terminal),
                       reward_on_prediction=bool(agent_cfg.get("value_on_prediction", True)),

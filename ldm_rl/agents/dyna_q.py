@@ -135,6 +135,10 @@ class DynaQAgent(TargetNetworkAgent):
         dyn, loss_reward = self._model_losses(batch)
         real = batch.select(*TRANSITION_KEYS)
         size, device = batch.batch_size[0], batch.get(keys.HEIGHTMAP).device
+        if self.loss.expert_margin_weight:  # the margin term reads the real rows' flag; imagined ones are no expert's
+            real.set("is_expert", batch.get("is_expert").reshape(size, 1).bool())
+            if imagined is not None:
+                imagined.set("is_expert", torch.zeros(imagined.batch_size[0], 1, dtype=torch.bool, device=device))
         if self.loss.return_lower_bound:  # imagined transitions collected no real return: no bound for them
             real.set("return_to_go", batch.get("return_to_go"))
             if imagined is not None:

@@ -32,6 +32,9 @@ class SpatialDQNLoss(TransitionLoss):
             (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
         q_log_floor: None (Q regresses ``y``) or ε in (0, 1): Q regresses ``log(max(y, ε))`` and ``max Q⁻`` is
             read back as ``exp`` (:class:`~ldm_rl.objectives.q_scale.QScale`; ``y`` itself is unchanged).
+        expert_margin_weight, expert_margin, expert_margin_rows: λ (0 = off, the paper), l and the row cap of
+            DQfD's large-margin term on the expert rows, added to ``loss_q`` as λ times it and reported as
+            ``expert_margin`` (:meth:`~ldm_rl.objectives.TransitionLoss.expert_margin_loss`; not in the paper).
 
     The target network is ``target_q_network_params`` (TorchRL ``convert_to_functional``), synced by a
     target updater (:class:`~ldm_rl.objectives.TargetSync`); targets run in eval mode without gradients,
@@ -42,17 +45,22 @@ class SpatialDQNLoss(TransitionLoss):
     q_network: nn.Module
     q_network_params: TensorDictParams
     target_q_network_params: TensorDictParams
-    out_keys = ["loss_q", "q_target", keys.CHOSEN_ACTION_VALUE, "td_error"]
-
     def __init__(self, q_network: nn.Module, *, gamma: float = 0.95, return_lower_bound: bool = False,
-                 q_log_floor: float | None = None) -> None:
+                 q_log_floor: float | None = None, expert_margin_weight: float = 0.0, expert_margin: float = 0.1,
+                 expert_margin_rows: int = 4) -> None:
         super().__init__()
         self.q_scale = QScale(q_log_floor)
+        self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows)
         self.return_lower_bound = bool(return_lower_bound)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
         self.convert_to_functional(q_network, "q_network", create_target_params=True)
         self.gamma = float(gamma)
+
+    @property
+    def out_keys(self) -> list[str]:
+        return ["loss_q", "q_target", keys.CHOSEN_ACTION_VALUE, "td_error",
+                *(["expert_margin"] if self.expert_margin_weight else [])]
 
     @torch.no_grad()
     def targets(self, tensordict: TensorDictBase) -> torch.Tensor:
@@ -80,12 +88,14 @@ class SpatialDQNLoss(TransitionLoss):
         fitted = self.q_scale.encode(target)
         td_error = (q_pred.detach() - fitted).abs().reshape(-1)
         tensordict.set(k.priority, td_error)
-        return TensorDict(
-            {
-                "loss_q": (F.smooth_l1_loss(q_pred, fitted, reduction="none") * weight).mean(),
-                "q_target": target.mean(),
-                keys.CHOSEN_ACTION_VALUE: self.q_scale.decode(q_pred.detach()).mean(),
-                "td_error": td_error.mean(),
-            },
-            batch_size=[],
-        )
+        out = {
+            "loss_q": (F.smooth_l1_loss(q_pred, fitted, reduction="none") * weight).mean(),
+            "q_target": target.mean(),
+            keys.CHOSEN_ACTION_VALUE: self.q_scale.decode(q_pred.detach()).mean(),
+            "td_error": td_error.mean(),
+        }
+        margin = self.expert_margin_loss(self.q_network, tensordict)
+        if margin is not None:
+            out["loss_q"] = out["loss_q"] + self.expert_margin_weight * margin
+            out["expert_margin"] = margin.detach()
+        return TensorDict(out, batch_size=[])

@@ -1,4 +1,5 @@
-"""What every transition loss of the agents shares: its input keys (TorchRL ``_AcceptedKeys``) and ``in_keys``."""
+"""What every transition loss of the agents shares: its input keys (TorchRL ``_AcceptedKeys``), ``in_keys``, the
+return lower bound and the expert large-margin term of the Q losses."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ class TransitionKeys:
     priority_weight: NestedKey = "priority_weight"
     return_to_go: NestedKey = "return_to_go"
     index: NestedKey = "index"  # the replay's row index (a TorchRL replay sample's "index"): cache key
+    is_expert: NestedKey = "is_expert"  # the action came from the expert (the replay's flag): the margin term's rows
 
 
 class TransitionLoss(LossModule):
@@ -43,6 +45,55 @@ class TransitionLoss(LossModule):
 
     #: raise a target to the return the episode actually collected from the transition on (set by subclasses)
     return_lower_bound: bool = False
+    #: λ, l and the row cap of the expert large-margin term (:meth:`expert_margin_loss`; λ = 0: off)
+    expert_margin_weight: float = 0.0
+    expert_margin: float = 0.1
+    expert_margin_rows: int = 4
+
+    def set_expert_margin(self, weight: float = 0.0, margin: float = 0.1, rows: int = 4) -> None:
+        """Switch the expert large-margin term on (``weight`` λ > 0) or off (0); checks the three numbers."""
+        for name, value, ok, want in (("expert_margin_weight", weight, lambda v: v >= 0, "a number >= 0 (0 = off)"),
+                                      ("expert_margin", margin, lambda v: v > 0, "a number > 0 (Q's fitted units)")):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not ok(value):
+                raise ValueError(f"{name} must be {want}, got {value!r}")
+        if isinstance(rows, bool) or not isinstance(rows, int) or rows < 1:
+            raise ValueError(f"expert_margin_rows must be an int >= 1, got {rows!r}")
+        self.expert_margin_weight, self.expert_margin, self.expert_margin_rows = float(weight), float(margin), rows
+
+    def expert_margin_loss(self, q_network, tensordict: TensorDictBase) -> torch.Tensor | None:
+        """DQfD's large-margin term (Hester et al. 2018) on the batch's expert rows; None when off.
+
+        For each of the first ``expert_margin_rows`` rows whose ``is_expert`` is set, with ``a_E`` its action and
+        ``Q`` its whole map ``[R, H, W]`` (on Q's fitted scale, log with ``q_log_floor``; ``-inf`` entries never
+        proposed stay out): ``max_a [Q(s, a) + l·1(a ≠ a_E)] − Q(s, a_E) ≥ 0``, zero once the expert's action
+        leads every other by ``l``. Returns the mean over those rows, ``[]`` float32 (0 without expert rows, or where
+        ``a_E`` is masked). The TD loss fits Q's values; this term orders them, so Q's argmax and proposals learn
+        the expert's pose (pixel and rotation) from the demonstrations, not only from their returns. Costs one
+        forward and backward pass of the whole map (all R rotations) per row: hence the cap.
+        """
+        if not self.expert_margin_weight:
+            return None
+        k = self.tensor_keys
+        flags = tensordict.get(k.is_expert, None)
+        if flags is None:
+            raise KeyError(f"{type(self).__name__} with expert_margin_weight > 0 needs {k.is_expert!r} in the batch "
+                           "(FrameReplay samples carry it)")
+        rows = flags.reshape(-1).bool().nonzero().squeeze(1)[: self.expert_margin_rows]
+        if rows.numel() == 0:
+            return tensordict.get(k.heightmap).new_zeros(())
+        state = [tensordict.get(key).index_select(0, rows) for key in (k.heightmap, k.in_hand)]
+        holding = tensordict.get(k.holding).reshape(-1, 1).bool().index_select(0, rows)
+        q_map = q_network(*state, holding).float().flatten(1)  # [n, R·H·W]
+        action = tensordict.get(k.action).reshape(-1, 3).long().index_select(0, rows)
+        height, width = state[0].shape[-2:]
+        flat = ((action[:, 2] * height + action[:, 0]) * width + action[:, 1]).unsqueeze(1)  # [n, 1]
+        q_expert = q_map.gather(1, flat)  # [n, 1]
+        live = torch.isfinite(q_expert).squeeze(1)  # a masked expert action has no margin to keep
+        if not bool(live.any()):
+            return q_map.new_zeros(())
+        q_map, flat, q_expert = q_map[live], flat[live], q_expert[live]
+        with_margin = (q_map + self.expert_margin).scatter(1, flat, q_expert)
+        return ((with_margin.amax(1, keepdim=True) - q_expert).sum() / rows.numel()).reshape(())
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass

@@ -176,6 +176,10 @@ class LookaheadLoss(TransitionLoss):
             the model-based ``Q̂(s', a') = V(f(s', a'))`` of the paper, on actions Q itself ranks high, not only
             on the action taken. A proposal Q rates high and V rates low (a pick that would come up empty) is
             pushed down. Costs one Q training pass per pair; 0 = off (the paper). Not in the paper.
+        expert_margin_weight, expert_margin, expert_margin_rows: λ (0 = off, the paper), l and the row cap of
+            DQfD's large-margin term on the expert rows, added to ``loss_q`` as λ times it and reported as
+            ``expert_margin`` (:meth:`~ldm_rl.objectives.TransitionLoss.expert_margin_loss`): Q, which only
+            proposes, learns to rank the expert's pose first. Not in the paper.
     """
 
     @dataclass
@@ -221,9 +225,13 @@ class LookaheadLoss(TransitionLoss):
         target_uncertainty_penalty: float = 0.0,
         q_log_floor: float | None = None,
         q_proposal_fit: int = 0,
+        expert_margin_weight: float = 0.0,
+        expert_margin: float = 0.1,
+        expert_margin_rows: int = 4,
     ) -> None:
         super().__init__()
         self.q_scale = QScale(q_log_floor)
+        self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows)
         if isinstance(target_uncertainty_penalty, bool) or not isinstance(target_uncertainty_penalty, (int, float)) \
                 or not target_uncertainty_penalty >= 0:
             raise ValueError(f"target_uncertainty_penalty must be a number >= 0 (V units per nat), "
@@ -275,7 +283,8 @@ class LookaheadLoss(TransitionLoss):
     @property
     def out_keys(self) -> list[str]:
         return ["loss_q", "loss_value", "loss_reward", *(["loss_termination"] if self.termination else []),
-                "q_target", "value_target", "state_value", "td_error"]
+                "q_target", "value_target", "state_value", "td_error",
+                *(["expert_margin"] if self.expert_margin_weight else [])]
 
     @contextlib.contextmanager
     def target_networks(self):
@@ -458,7 +467,12 @@ class LookaheadLoss(TransitionLoss):
         loss_q = huber(q_pred, self.q_scale.encode(q_target))
         if fit is not None:
             loss_q = loss_q + self._proposal_fit_loss(tensordict, weight, *fit)
+        margin = self.expert_margin_loss(self.q_network, tensordict)
+        if margin is not None:
+            loss_q = loss_q + self.expert_margin_weight * margin
         out = {"loss_q": loss_q, "loss_value": loss_value, "loss_reward": loss_reward}
+        if margin is not None:
+            out["expert_margin"] = margin.detach()
         if loss_termination is not None:
             out["loss_termination"] = loss_termination
         out.update(q_target=q_target.mean(), value_target=v_target.mean(), state_value=v_real.detach().mean(),
