@@ -21,6 +21,13 @@ the best rotation there is.
 Last, the agent's on-object picks in ``--parts`` consecutive parts of equal size, in the order they were taken: the
 share that held and the share whose object's span fits the open fingers, part by part, so whether the agent's picks
 improve over training.
+With ``--proposals`` (an LDM agent's run): its greedy planner's N pick proposals on the last 100 expert pick states
+and the last 100 of the agent's, read with the run's ``checkpoint.pt`` (online weights): how many are a fitting,
+centred grasp (on an object, its span along the closing direction under ``--opening``, within 4 px of its centroid),
+whether Q's first one is, and whether the one V(f(s, a)) chooses is. ``--margin-steps K`` first fits the run's Q
+with the expert margin term alone (``agent.expert_margin_weight``; Adam, 4 expert picks per step, ``--margin-lr``)
+on its other expert picks for K steps, then reads the proposals again: what the demonstrations can teach Q about
+the grasp's pose beyond its TD targets.
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -240,6 +247,105 @@ def report(run: Path, surface: float, max_region: int, model: bool, opening: flo
                   + f" | {(spans.min(1) < opening * 100).mean():.2f} |")
 
 
+CENTRED = 4.0  # px (1.25 cm): a grasp within this of its object's centroid is centred
+
+
+def grasp_quality(p: dict, i: int, action, surface: float, max_region: int, opening: float,
+                  resolution: float) -> tuple[bool, bool]:
+    """(fits, fits and centred) of pick ``action`` (row, col, rot) on the scene of pick ``i`` of ``p``."""
+    row, col, rot = (int(x) for x in action)
+    region = object_region(p["heightmap"][i], np.array([row, col]), surface, max_region)
+    if region is None:
+        return False, False
+    fits = closing_span(region, rot * np.pi / p["num_rotations"]) * resolution < opening
+    return fits, fits and float(np.hypot(*(region.mean(0) - [row, col]))) < CENTRED
+
+
+def proposal_reading(agent, p: dict, rows: np.ndarray, surface: float, max_region: int, opening: float,
+                     resolution: float, batch: int = 10) -> dict[str, int]:
+    """The greedy planner's proposals on the picks ``rows`` of ``p``: counts of fitting and fitting-centred
+    proposals, of states with one such, of Q's first proposal and of V's choice being one."""
+    planner = agent.planner.eval()
+    hp = planner.hyperparameters(greedy=True)
+    out = dict.fromkeys(("states", "proposals", "fit", "good", "any good", "first good", "chosen fit",
+                         "chosen good"), 0)
+    with torch.no_grad():
+        for start in range(0, len(rows), batch):
+            r = rows[start:start + batch]
+            heightmap = torch.from_numpy(p["heightmap"][r]).unsqueeze(1)
+            hand = torch.zeros(len(r), 1, p["hand_size"], p["hand_size"])
+            holding = torch.zeros(len(r), 1, dtype=torch.bool)
+            _, candidates = planner.propose(heightmap, hand, holding, hp, greedy=True)
+            chosen = planner.score(heightmap, hand, holding, candidates, 0.0)[0].argmax(1)
+            for j, i in enumerate(r):
+                quality = [grasp_quality(p, i, a, surface, max_region, opening, resolution) for a in candidates[j]]
+                out["states"] += 1
+                out["proposals"] += len(quality)
+                out["fit"] += sum(f for f, _ in quality)
+                out["good"] += sum(g for _, g in quality)
+                out["any good"] += any(g for _, g in quality)
+                out["first good"] += quality[0][1]
+                out["chosen fit"] += quality[int(chosen[j])][0]
+                out["chosen good"] += quality[int(chosen[j])][1]
+    return out
+
+
+def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: float = 0.1, seed: int = 0) -> list[float]:
+    """Fit ``agent``'s online Q on the picks ``rows`` with the expert margin term alone (4 picks per step); returns
+    the term's value every 50 steps."""
+    from ldm_rl.objectives import SpatialDQNLoss
+
+    loss = SpatialDQNLoss(agent.planner.q_network, expert_margin_weight=1.0, expert_margin=margin, expert_margin_rows=4)
+    optimiser = torch.optim.Adam(list(loss.q_network_params.values(True, True)), lr=lr)
+    rng, trace = np.random.default_rng(seed), []
+    for step in range(steps):
+        r = rng.choice(rows, 4, replace=False)
+        data = TensorDict({"heightmap": torch.from_numpy(p["heightmap"][r]).unsqueeze(1),
+                           "in_hand": torch.zeros(4, 1, p["hand_size"], p["hand_size"]),
+                           "holding": torch.zeros(4, 1, dtype=torch.bool), "action": torch.from_numpy(p["action"][r]),
+                           "is_expert": torch.ones(4, 1, dtype=torch.bool)}, batch_size=[4])
+        loss.q_network.train()
+        optimiser.zero_grad()
+        term = loss.expert_margin_loss(loss.q_network, data)
+        term.backward()
+        optimiser.step()
+        if step % 50 == 0 or step == steps - 1:
+            trace.append(float(term.detach()))
+    return trace
+
+
+def proposals_report(run: Path, surface: float, max_region: int, opening: float, resolution: float,
+                     margin_steps: int, margin_lr: float) -> None:
+    from ldm_rl.agents import load_agent
+
+    p = load_picks(run)
+    agent, _ = load_agent(run / "checkpoint.pt")
+    if agent.name != "ldm":
+        raise SystemExit(f"--proposals reads an LDM agent's planner; {run}/checkpoint.pt holds agent {agent.name!r}")
+    expert = np.nonzero(p["expert"])[0]
+    mine = np.nonzero(~p["expert"])[0]
+    if len(expert) <= 100 + 4 * (margin_steps > 0):
+        raise SystemExit(f"{run}'s replay has {len(expert)} expert picks: --proposals needs more than 100")
+    groups = (("expert (last 100)", expert[-100:]), ("agent (last 100)", mine[-100:]))
+    readings = [("as trained", name, proposal_reading(agent, p, rows, surface, max_region, opening, resolution))
+                for name, rows in groups]
+    if margin_steps:
+        trace = fit_margin(agent, p, expert[:-100], margin_steps, margin_lr)
+        print(f"\nthe margin term over {margin_steps} steps on the other {len(expert) - 100} expert picks: "
+              + " → ".join(f"{t:.3f}" for t in trace))
+        readings += [(f"after {margin_steps} margin steps", name,
+                      proposal_reading(agent, p, rows, surface, max_region, opening, resolution)) for name, rows in groups]
+    print(f"\n{run}: the greedy planner's pick proposals (fitting: span under {opening * 100:.1f} cm; centred: within "
+          f"{CENTRED:g} px of the object's centroid)")
+    print("| Q | pick states | proposals fitting / fitting and centred | states with one fitting and centred | "
+          "Q's first proposal fitting and centred | V's choice fitting / fitting and centred |")
+    print("|---|---|---|---|---|---|")
+    for when, name, r in readings:
+        n = r["states"]
+        print(f"| {when} | {name} | {r['fit'] / r['proposals']:.2f} / {r['good'] / r['proposals']:.2f} | "
+              f"{r['any good']} / {n} | {r['first good']} / {n} | {r['chosen fit']} / {r['chosen good']} of {n} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("runs", nargs="+", type=Path, help="training run folders (each with a replay-* folder)")
@@ -250,7 +356,16 @@ def main() -> None:
     parser.add_argument("--rotations", action="store_true",
                         help="with --model: also read the model at every rotation of the agent's picks")
     parser.add_argument("--parts", type=int, default=5, help="the agent's picks over training: in this many parts")
+    parser.add_argument("--proposals", action="store_true",
+                        help="an LDM agent's run: its greedy planner's pick proposals on the last expert and agent picks")
+    parser.add_argument("--margin-steps", type=int, default=0,
+                        help="with --proposals: first fit Q with the expert margin term alone for this many steps")
+    parser.add_argument("--margin-lr", type=float, default=1e-3, help="Adam's learning rate of --margin-steps")
     args = parser.parse_args()
+    if args.margin_steps < 0 or (args.margin_steps and not args.proposals):
+        parser.error(f"--margin-steps must be >= 0 and goes with --proposals, got {args.margin_steps}")
+    if not args.margin_lr > 0:
+        parser.error(f"--margin-lr must be > 0, got {args.margin_lr!r}")
     if args.parts < 1:
         parser.error(f"--parts must be >= 1, got {args.parts}")
     if args.rotations and not args.model:
@@ -260,6 +375,9 @@ def main() -> None:
     torch.set_num_threads(1)
     for run in args.runs:
         report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
+        if args.proposals:
+            proposals_report(run, args.surface, args.max_region, args.opening, 0.003125, args.margin_steps,
+                             args.margin_lr)
 
 
 if __name__ == "__main__":

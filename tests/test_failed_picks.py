@@ -131,7 +131,8 @@ def test_the_lookahead_planner_proposes_nothing_near_an_avoided_action():
 def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_scores():
     """benchmarks/pick_outcomes.py: the pick's distance to the centroid of the object under it (nan on bare
     floor or on a region too large to be an object), the object's span along the fingers' closing direction,
-    the AUROC of a score against an outcome, and the rotation a sweep of K bins chooses."""
+    the AUROC of a score against an outcome, the rotation a sweep of K bins chooses, and whether a pick is a
+    fitting, centred grasp."""
     import importlib.util
     from pathlib import Path
 
@@ -153,6 +154,12 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     assert bench.closing_span(region, np.pi / 2) == pytest.approx(13.0)  # along the columns: its length
     assert bench.closing_span(region, np.pi / 4) == pytest.approx(16 / np.sqrt(2) + 1)
     assert bench.object_region(brick, np.array([0, 0]), 0.012, 1500) is None
+    # --proposals' grasp quality (2 rotation bins: 0 closes along the rows, 1 along the columns; 1 m per px, 6 m open)
+    picks = {"heightmap": brick[None], "num_rotations": 2}
+    assert bench.grasp_quality(picks, 0, (12, 10, 0), 0.012, 1500, 6.0, 1.0) == (True, True)  # across, at the centroid
+    assert bench.grasp_quality(picks, 0, (12, 10, 1), 0.012, 1500, 6.0, 1.0) == (False, False)  # along its length
+    assert bench.grasp_quality(picks, 0, (12, 15, 0), 0.012, 1500, 6.0, 1.0) == (True, False)  # 5 px off the centroid
+    assert bench.grasp_quality(picks, 0, (0, 0, 0), 0.012, 1500, 6.0, 1.0) == (False, False)  # bare floor
     # planner.pick_rotations=K as the benchmark reads it: the best p_drop among the taken bin's K evenly spaced bins
     p_drop = np.array([[0.1, 0.9, 0.2, 0.3, 0.8, 0.0, 0.7, 0.0], [0.5, 0.1, 0.1, 0.1, 0.5, 0.1, 0.1, 0.1]])
     assert bench.swept_choice(p_drop, np.array([2, 0]), 1).tolist() == [2, 0]
