@@ -147,7 +147,7 @@ def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0)
                          batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),
                          priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus))
     for episode in expert_episodes(cfg):
-        replay.extend_episode(episode, expert=True)
+        replay.extend_episode(episode)  # its own per-step is_expert flags
     for _ in range(int(cfg.schedule.pretrain_updates)):
         agent.pretrain_update(replay.sample())
     agent.sync_targets()

@@ -46,7 +46,9 @@ CURVE_FIELDS = ("updates", "episodes", "env_steps", "wall_s", "success_rate", "c
 
 
 def expert_episodes(cfg: DictConfig) -> list:
-    """``cfg.schedule.expert_episodes`` scripted-expert episodes, each a TensorDict ``[T]``."""
+    """``cfg.schedule.expert_episodes`` scripted-expert episodes, each a TensorDict ``[T]`` with the per-step
+    ``is_expert`` flag (False where ``schedule.expert_noise`` replaced the expert's action: a random action, a
+    turned rotation), which the replay keeps: such steps get no expert priority bonus and no expert margin."""
     import torch
 
     from ldm_rl.data.demos import collect_demos
@@ -57,7 +59,7 @@ def expert_episodes(cfg: DictConfig) -> list:
                           seed=expert_scenes(cfg.seed), procedure=s.expert_procedure,
                           noise=OmegaConf.to_container(s.expert_noise, resolve=True), progress=bool(s.progress))
     lengths = torch.unique_consecutive(demos["episode"], return_counts=True)[1].tolist()
-    return list(demos.select(*TRANSITION_KEYS).split(lengths))
+    return list(demos.select(*TRANSITION_KEYS, "is_expert").split(lengths))
 
 
 def updates_due(env_steps: int, updates_per_step: float) -> int:
@@ -210,7 +212,7 @@ def train(cfg: DictConfig) -> dict:
         else:
             log.info(f"{agent.name} agent on {task}: seeding replay with {s.expert_episodes} expert episodes")
             for episode in expert_episodes(cfg):
-                replay.extend_episode(episode.to(device), expert=True)
+                replay.extend_episode(episode.to(device))  # its own per-step is_expert flags
             for _ in progress_bar(range(int(s.pretrain_updates)), desc="pretrain LDM", unit="update", enabled=bool(s.progress)):
                 agent.pretrain_update(replay.sample())
             agent.sync_targets()  # the first targets come from the (pretrained) networks that act

@@ -392,6 +392,27 @@ def test_smoke_run_end_to_end(name, tmp_path):
     assert agent.name == name and agent.updates == 0  # load_agent restores weights (training state: resume)
 
 
+def test_the_seeded_replay_keeps_the_demos_flags_where_noise_replaced_the_experts_action():
+    """recipes/train_policy.py's expert episodes carry each step's is_expert (False at a turned rotation), and the
+    replay seeded with them keeps it: no expert bonus, no expert margin on the noise."""
+    from ldm_rl.data.replay import FrameReplay
+
+    sys.path.insert(0, str(ROOT / "recipes"))
+    try:
+        from train_policy import expert_episodes
+    finally:
+        sys.path.remove(str(ROOT / "recipes"))
+    cfg = config("fcdqn", "schedule.expert_episodes=2", "schedule.expert_noise.rotation_prob=0.5")
+    episodes = expert_episodes(cfg)
+    flags = torch.cat([episode["is_expert"].reshape(-1) for episode in episodes])
+    assert flags.any() and not flags.all()  # seeded: both kinds at p = 0.5
+    replay = FrameReplay(64, max_height=MAX_HEIGHT, generator=torch.Generator().manual_seed(0))
+    for episode in episodes:
+        replay.extend_episode(episode)
+    sample = replay.sample(256)
+    assert not sample["is_expert"].all() and sample["is_expert"].any()
+
+
 @pytest.mark.slow
 def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_path):
     """experiment=smoke env=bin_packing: the expert episodes that seed the replay end terminated with a
