@@ -307,8 +307,9 @@ def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: 
         loss.q_network.train()
         optimiser.zero_grad()
         term = loss.expert_margin_loss(loss.q_network, data)
-        term.backward()
-        optimiser.step()
+        if term.requires_grad:  # else every drawn pick's action is one Q never proposes (-inf): nothing to fit
+            term.backward()
+            optimiser.step()
         if step % 50 == 0 or step == steps - 1:
             trace.append(float(term.detach()))
     return trace

@@ -418,6 +418,8 @@ class AgentConfig:
     q_width: Optional[float] = spec(None, gt=0, le=4, doc="Q channel multiplier override")
     q_head_channels: Optional[int] = spec(None, ge=1, doc="hidden units of Q's pick/place heads (null = 8 scaled by the width)")
     q_frame_margin: int = spec(0, ge=0, lt=32, doc="pixels at each Q gripper frame's edge never proposed (0 = none)")
+    q_frame_pad: int = spec(0, ge=0, le=64, doc="pixels of zeros around the scene before QFCN rotates it into each "
+                            "bin's frame (a multiple of 8; 0 = the reference's 128 px frames)")
     q_pick_min_height: float = spec(0.0, ge=0, doc="m: picks on pixels not above it (nothing to grasp) never proposed (0 = none)")
     q_architecture: str = spec("fcn", choices=("fcn", "equivariant"),
                                doc="Q network: QFCN (rotated scenes) | C_2R-equivariant e2cnn net (extra [equivariant])")
@@ -513,6 +515,12 @@ class AgentConfig:
         if node.name == "rs" and node.get("expert_margin_weight"):
             found.append(f"{prefix}expert_margin_weight={_show(node.expert_margin_weight)} is set but agent=rs builds no "
                          "Q network; set it to 0")
+        if node.get("q_frame_pad") and (node.name == "rs" or node.get("q_architecture", "fcn") != "fcn"):
+            found.append(f"{prefix}q_frame_pad={_show(node.q_frame_pad)} pads QFCN's rotated frames, which "
+                         f"agent={node.name} with q_architecture={node.get('q_architecture', 'fcn')} does not build; set it to 0")
+        elif node.get("q_frame_pad", 0) % 8:
+            found.append(f"{prefix}q_frame_pad={_show(node.q_frame_pad)} must be a multiple of 8 (the trunk halves its "
+                         "input four times)")
         if node.name == "rs" and node.get("q_log_floor") is not None:
             found.append(f"{prefix}q_log_floor={_show(node.q_log_floor)} is set but agent=rs builds no Q network")
         if node.name == "rs" and node.get("q_pick_min_height"):

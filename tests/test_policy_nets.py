@@ -126,6 +126,57 @@ def test_a_frame_margin_masks_the_band_at_each_gripper_frames_edge_and_keeps_the
         QFCN(MAX_HEIGHT, frame_margin=-1)
 
 
+def test_a_padded_frame_keeps_every_pixel_proposable_at_every_rotation_and_the_equivariance():
+    """frame_pad=p: the scene is rotated inside a (128 + 2p)-pixel frame. At 32 every pixel is finite at every bin
+    (with an 8 px margin all but the 6 at each extreme corner); quarter turns still commute bit for bit; the
+    training path reads the same values as the maps; frame_pad=0 builds the reference's tables."""
+    from ldm_rl.models.q_fcn import _rotation_tables
+
+    torch.manual_seed(0)
+    q = build_q_network("lite", max_height=MAX_HEIGHT, width=TINY, frame_pad=32)
+    margin = build_q_network("lite", max_height=MAX_HEIGHT, width=TINY, frame_pad=32, frame_margin=8)
+    assert q.frame_size == 192 and tuple(q._scene_index.shape) == (8, 192 * 192)
+    scene, in_hand, holding = states(2, seed=3)
+    with torch.no_grad():
+        maps, with_margin = q(scene, in_hand, holding), margin(scene, in_hand, holding)
+    assert torch.isfinite(maps).all()
+    corners = torch.isneginf(with_margin).any(1)  # [2, H, W]: -inf at some bin
+    assert int(corners[0].sum()) == 4 * 6 and not corners[:, 4:-4].any() and not corners[:, :, 4:-4].any()
+    maps, plus, minus = quarter_turn_maps(q)
+    assert torch.equal(plus[:, :4], g.rotate(maps[:, 4:], math.pi / 2))
+    assert torch.equal(minus[:, 4:], g.rotate(maps[:, :4], -math.pi / 2))
+    n = 8
+    gen = torch.Generator().manual_seed(1)
+    action = torch.stack((torch.randint(0, 128, (n,), generator=gen), torch.randint(0, 128, (n,), generator=gen),
+                          torch.arange(n)), -1)
+    action[1] = torch.tensor([0, 127, 1])  # a corner outside bin 1's unpadded frame
+    scene, in_hand, holding = states(n, seed=4)
+    with torch.no_grad():
+        maps = q(scene, in_hand, holding)
+        values = q.action_values(scene, in_hand, holding, action)
+    torch.testing.assert_close(values, maps[torch.arange(n), action[:, 2], action[:, 0], action[:, 1]], rtol=1e-5, atol=1e-6)
+    for margin_px in (0, 8):
+        plain, same = _rotation_tables(8, 128, margin_px), _rotation_tables(8, 128, margin_px, 128)
+        assert all(torch.equal(a, b) for a, b in zip(plain, same))
+    for bad in (-8, 12, 72, True):
+        with pytest.raises(ValueError, match="frame_pad must be a multiple of 8 in \\[0, 64\\] pixels"):
+            QFCN(MAX_HEIGHT, frame_pad=bad)
+    with pytest.raises(ValueError, match="frame_pad=32 pads QFCN's rotated frames; architecture 'equivariant'"):
+        build_q_network("lite", max_height=MAX_HEIGHT, frame_pad=32, architecture="equivariant")
+
+
+def test_the_config_builds_the_padded_frame_and_refuses_it_where_there_is_none():
+    from ldm_rl.config_schema import ConfigError, TrainPolicyConfig, validate_config
+    from test_baselines import config, make_agent
+
+    assert make_agent("fcdqn", "agent.q_frame_pad=16").policy.q_network.frame_size == 160
+    for overrides, message in ((("agent.q_frame_pad=12",), "agent.q_frame_pad=12 must be a multiple of 8"),
+                               (("agent.q_frame_pad=16", "agent.q_architecture=equivariant"),
+                                "agent.q_frame_pad=16 pads QFCN's rotated frames")):
+        with pytest.raises(ConfigError, match=message):
+            validate_config(config("ldm", *overrides), TrainPolicyConfig)
+
+
 def test_pick_min_height_masks_picks_on_nothing_and_nothing_else():
     """pick_min_height=h: each pick map is -inf at every rotation exactly on the pixels not above h (the table, a
     tray's floor) and equal to the plain map elsewhere; place maps, a scene with almost nothing above h and the

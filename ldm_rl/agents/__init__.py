@@ -91,6 +91,7 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     common = {"max_height": float(max_height), "num_classes": dynamics.num_classes}
     q_network = build_q_network(preset, num_rotations=dynamics.num_rotations, width=agent_cfg.get("q_width"),
                                 frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
+                                frame_pad=int(agent_cfg.get("q_frame_pad") or 0),
                                 pick_min_height=float(agent_cfg.get("q_pick_min_height") or 0.0),
                                 head_channels=agent_cfg.get("q_head_channels"),
                                 architecture=str(agent_cfg.get("q_architecture") or "fcn"), **common)
@@ -134,7 +135,7 @@ def _required(agent_cfg: Mapping[str, Any], name: str, *keys: str) -> list:
 
 
 def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
-    """The Q FCN of ``cfg.agent`` (preset, q_width, q_head_channels, q_architecture, q_frame_margin, q_pick_min_height) on the input quantisation of ``cfg.model``."""
+    """The Q FCN of ``cfg.agent`` (preset, q_width, q_head_channels, q_architecture, q_frame_margin, q_frame_pad, q_pick_min_height) on the input quantisation of ``cfg.model``."""
     from ldm_rl.geometry import NUM_ROTATIONS
     from ldm_rl.models.q_fcn import build_q_network
 
@@ -143,6 +144,7 @@ def _q_network(cfg: Mapping[str, Any], agent_cfg: dict, max_height: float):
     return build_q_network(preset, max_height=float(max_height), num_classes=int(model.get("num_depth_classes", 21)),
                            num_rotations=int(model.get("num_rotations", NUM_ROTATIONS)), width=agent_cfg.get("q_width"),
                            frame_margin=int(agent_cfg.get("q_frame_margin") or 0),
+                           frame_pad=int(agent_cfg.get("q_frame_pad") or 0),
                            pick_min_height=float(agent_cfg.get("q_pick_min_height") or 0.0),
                            head_channels=agent_cfg.get("q_head_channels"),
                            architecture=str(agent_cfg.get("q_architecture") or "fcn"))

@@ -103,11 +103,15 @@ def _map_head(channels: int, hidden: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(channels, hidden, 3, padding=1), nn.LeakyReLU(LEAKY_SLOPE), nn.Conv2d(hidden, 1, 1))
 
 
-def _rotation_tables(num_rotations: int, size: int, margin: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest-pixel gather tables ``[R, size²]`` (int64, flat index + 1; 0 = outside the frame).
+def _rotation_tables(num_rotations: int, size: int, margin: int = 0, frame: int | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest-pixel gather tables: ``scene [R, frame²]`` and ``maps [R, size²]`` (int64, flat index + 1; 0 = outside).
 
-    ``scene[k][p]``: the scene pixel that the trunk of bin k sees at p, i.e. ``rotate(x, θ_k)``;
-    ``maps[k][p]``: the gripper-frame pixel of bin k that ``Q[k]`` shows at p, i.e. ``rotate(m, −θ_k)``.
+    ``scene[k][p]``: the scene pixel that the trunk of bin k sees at frame pixel p, i.e. ``rotate(x, θ_k)`` of the
+    scene centred in a ``frame``-pixel square of zeros; ``maps[k][p]``: the gripper-frame pixel of bin k that
+    ``Q[k]`` shows at scene pixel p, i.e. ``rotate(m, −θ_k)`` cropped back to the scene. ``frame`` (default
+    ``size``, the reference) larger than the scene by ⌈(√2 − 1)·size⌉ keeps every scene pixel inside every bin's
+    frame; at ``size`` the corners leave the frames of the non-quarter bins.
     Each ``θ_k = q·π/2 + φ`` (q ∈ {0, 1}, φ ∈ [0, π/2), exact rational split) is applied as an exact
     quarter turn (``torch.rot90``; ``rot90(x, −1) == geometry.rotate(x, π/2)``) and a
     ``geometry.rotate`` by φ: the scene is quarter-turned first, the map last. So bin k + R/2 of a
@@ -116,17 +120,23 @@ def _rotation_tables(num_rotations: int, size: int, margin: int = 0) -> tuple[to
     ``margin`` > 0 also marks as outside every map pixel that falls within ``margin`` pixels of its
     gripper frame's edge (the band where the trunk's convolutions read their zero padding).
     """
-    ids = torch.arange(1, size * size + 1, dtype=torch.int64).view(1, size, size)
+    frame = size if frame is None else frame
+    pad = (frame - size) // 2
+    if frame < size or frame - size != 2 * pad:
+        raise ValueError(f"frame must be the scene's size {size} plus an even number of pixels, got {frame!r}")
+    ids = F.pad(torch.arange(1, size * size + 1, dtype=torch.int64).view(1, size, size), (pad, pad, pad, pad))
+    frame_ids = torch.arange(1, frame * frame + 1, dtype=torch.int64).view(1, frame, frame)
     scene, maps = [], []
     for k in range(num_rotations):
         q = (2 * k) // num_rotations
         phi = (2 * k - q * num_rotations) * math.pi / (2 * num_rotations)
         scene.append(geometry.rotate(torch.rot90(ids, -q, (-2, -1)), phi, mode="nearest"))
-        maps.append(torch.rot90(geometry.rotate(ids, -phi, mode="nearest"), q, (-2, -1)))
-    maps = torch.stack(maps).view(num_rotations, -1)
+        back = torch.rot90(geometry.rotate(frame_ids, -phi, mode="nearest"), q, (-2, -1))
+        maps.append(back[..., pad : pad + size, pad : pad + size])
+    maps = torch.stack(maps).reshape(num_rotations, -1)
     if margin > 0:
-        row, col = (maps - 1).div(size, rounding_mode="floor"), (maps - 1).remainder(size)
-        band = (row < margin) | (row >= size - margin) | (col < margin) | (col >= size - margin)
+        row, col = (maps - 1).div(frame, rounding_mode="floor"), (maps - 1).remainder(frame)
+        band = (row < margin) | (row >= frame - margin) | (col < margin) | (col >= frame - margin)
         maps = maps.masked_fill(band & (maps > 0), 0)
     return torch.stack(scene).view(num_rotations, -1), maps
 
@@ -150,6 +160,12 @@ def check_q_arguments(max_height, num_classes, num_rotations, width, frame_margi
     real = isinstance(pick_min_height, (int, float)) and not isinstance(pick_min_height, bool)
     if not real or not 0 <= pick_min_height < max_height:
         raise ValueError(f"pick_min_height must be a number of metres in [0, max_height = {max_height}), got {pick_min_height!r}")
+
+
+def check_frame_pad(frame_pad) -> None:
+    """``frame_pad``: an int in [0, 64], a multiple of 8 (the trunk halves its input four times); one ValueError."""
+    if not isinstance(frame_pad, int) or isinstance(frame_pad, bool) or not 0 <= frame_pad <= 64 or frame_pad % 8:
+        raise ValueError(f"frame_pad must be a multiple of 8 in [0, 64] pixels, got {frame_pad!r}")
 
 
 MIN_PICK_ENTRIES = 64  # a pick map the mask would leave with fewer finite entries keeps its unmasked ones
@@ -228,6 +244,10 @@ class QFCN(CompiledInference, nn.Module):
             and the first updates, raising Q towards the returns, switch off those with a negative output weight:
             at 2 units a house run's pick head kept none, its pre-activations near 0, and its map went flat
             (docs/policy.md, "Q heads that go flat"); 8 keeps the reference's count at every width.
+        frame_pad: pixels of zeros around the scene on each side before it is rotated into each bin's frame (0 =
+            the reference: the frames are the 128 px image, so near its corners a pixel falls outside the frames of
+            the non-quarter bins and its Q there is ``-inf``). 32 keeps every pixel inside every frame (with an
+            8 px ``frame_margin``, all but 6 at each corner), at (192/128)² ≈ 2.25× the trunk's work (docs/policy.md, "Where Q cannot grasp").
     """
 
     CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
@@ -237,11 +257,13 @@ class QFCN(CompiledInference, nn.Module):
 
     def __init__(
         self, max_height: float, num_classes: int = 21, num_rotations: int = geometry.NUM_ROTATIONS, width: float = 1.0,
-        frame_margin: int = 0, pick_min_height: float = 0.0, head_channels: int | None = None,
+        frame_margin: int = 0, pick_min_height: float = 0.0, head_channels: int | None = None, frame_pad: int = 0,
     ) -> None:
         super().__init__()
         check_q_arguments(max_height, num_classes, num_rotations, width, frame_margin, pick_min_height, head_channels)
+        check_frame_pad(frame_pad)
         self.frame_margin, self.pick_min_height = frame_margin, float(pick_min_height)
+        self.frame_pad, self.frame_size = frame_pad, geometry.HEIGHTMAP_SIZE + 2 * frame_pad
         self.max_height, self.num_classes = float(max_height), num_classes
         self.num_rotations, self.width = num_rotations, float(width)
 
@@ -281,7 +303,7 @@ class QFCN(CompiledInference, nn.Module):
             if isinstance(m, nn.Conv2d):
                 nn.init.xavier_normal_(m.weight)
 
-        scene_index, map_index = _rotation_tables(num_rotations, geometry.HEIGHTMAP_SIZE, frame_margin)
+        scene_index, map_index = _rotation_tables(num_rotations, geometry.HEIGHTMAP_SIZE, frame_margin, self.frame_size)
         self.register_buffer("_scene_index", scene_index, persistent=False)
         self.register_buffer("_map_index", map_index, persistent=False)
 
@@ -289,23 +311,25 @@ class QFCN(CompiledInference, nn.Module):
     # rotations: one gather each, through the tables of _rotation_tables
     # ------------------------------------------------------------------------------------------
     def _rotate_scene(self, x: torch.Tensor, bins: torch.Tensor | None = None) -> torch.Tensor:
-        """``[N, 1, H, W]`` -> ``[N, R, H, W]`` (all bins) or, with ``bins [N]``, ``[N, 1, H, W]``: the
-        scene in the gripper frame of each bin (pixels from outside the frame read 0)."""
+        """``[N, 1, H, W]`` -> ``[N, R, S, S]`` (all bins) or, with ``bins [N]``, ``[N, 1, S, S]``: the
+        scene in the gripper frame of each bin, S = :attr:`frame_size` (pixels from outside the scene read 0)."""
         n, _, h, w = x.shape
+        f = self.frame_size
         flat = F.pad(x.reshape(n, h * w), (1, 0))  # index 0 reads the zero outside the frame
         if bins is None:
-            return flat.index_select(1, self._scene_index.reshape(-1)).view(n, -1, h, w)
-        return flat.gather(1, self._scene_index.index_select(0, bins)).view(n, 1, h, w)
+            return flat.index_select(1, self._scene_index.reshape(-1)).view(n, -1, f, f)
+        return flat.gather(1, self._scene_index.index_select(0, bins)).view(n, 1, f, f)
 
     def _unrotate_maps(self, maps: torch.Tensor) -> torch.Tensor:
-        """``[N, R, H, W]`` maps in the gripper frames -> the scene frame: ``Q[n, k, row, col]``.
+        """``[N, R, S, S]`` maps in the gripper frames -> ``[N, R, H, W]`` in the scene: ``Q[n, k, row, col]``.
 
         Pixels that bin k's rotated frame does not cover (near the image border at non-quarter bins) read
         ``-inf``: the trunk never saw them, so they are never proposed and never win a max (read as 0 they
         beat every negative learned value and drew every greedy action to the border)."""
-        n, r, h, w = maps.shape
-        flat = F.pad(maps.reshape(n, r, h * w), (1, 0), value=float("-inf"))
-        return flat.gather(2, self._map_index.unsqueeze(0).expand(n, r, h * w)).view(n, r, h, w)
+        n, r, f, _ = maps.shape
+        size = geometry.HEIGHTMAP_SIZE
+        flat = F.pad(maps.reshape(n, r, f * f), (1, 0), value=float("-inf"))
+        return flat.gather(2, self._map_index.unsqueeze(0).expand(n, r, size * size)).view(n, r, size, size)
 
     # ------------------------------------------------------------------------------------------
     # network pieces
@@ -467,11 +491,11 @@ class QFCN(CompiledInference, nn.Module):
 
     def _action_chunk(self, x: torch.Tensor, hand: torch.Tensor, holding: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Encoded [n, 1, H, W], [n, 1, 24, 24], [n] bool, [n, 3] long -> [n] Q of the actions."""
-        size = x.shape[-1]
+        size, f = x.shape[-1], self.frame_size
         bins = action[:, 2]
         pixel = self._map_index[bins, action[:, 0] * size + action[:, 1]]  # [n], 0 = outside the frame
         frame_pixel = (pixel - 1).clamp(min=0)
-        centre = torch.stack((frame_pixel.div(size, rounding_mode="floor"), frame_pixel.remainder(size)), dim=1)
+        centre = torch.stack((frame_pixel.div(f, rounding_mode="floor"), frame_pixel.remainder(f)), dim=1)
         up, skip = self._trunk_to_up_2(self._rotate_scene(x, bins))
         values = self._window_values(up, skip, hand, holding, centre)
         return torch.where(pixel > 0, values, torch.zeros_like(values))
@@ -488,12 +512,13 @@ def build_q_network(
     architecture: str = "fcn",
     pick_min_height: float = 0.0,
     head_channels: int | None = None,
+    frame_pad: int = 0,
 ) -> nn.Module:
     """A Q network at a preset width (``Q_PRESETS``); ``width`` overrides the preset's. ``architecture``
     (``Q_ARCHITECTURES``, ``agent.q_architecture``): ``"fcn"`` a :class:`QFCN`, ``"equivariant"`` an
     :class:`~ldm_rl.models.equivariant_q.EquivariantQFCN` (the same interface; needs the ``equivariant`` extra).
     ``head_channels``: the QFCN heads' hidden units (None: scaled with the width); the equivariant heads keep their
-    feature fields and ignore it."""
+    feature fields and ignore it. ``frame_pad``: :class:`QFCN`'s padded frames (the equivariant net has none)."""
     if preset not in Q_PRESETS:
         raise ValueError(f"unknown Q network preset {preset!r}; expected one of {sorted(Q_PRESETS)}")
     if architecture not in Q_ARCHITECTURES:
@@ -501,7 +526,10 @@ def build_q_network(
     args = (max_height, num_classes, num_rotations, Q_PRESETS[preset] if width is None else width, frame_margin,
             pick_min_height)
     if architecture == "equivariant":
+        if frame_pad:
+            raise ValueError(f"frame_pad={frame_pad!r} pads QFCN's rotated frames; architecture 'equivariant' has none "
+                             "(set it to 0)")
         from ldm_rl.models.equivariant_q import EquivariantQFCN  # raises MissingExtraError without e2cnn
 
         return EquivariantQFCN(*args)
-    return QFCN(*args, head_channels=head_channels)
+    return QFCN(*args, head_channels=head_channels, frame_pad=frame_pad)
