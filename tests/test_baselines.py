@@ -392,18 +392,23 @@ def test_smoke_run_end_to_end(name, tmp_path):
     assert agent.name == name and agent.updates == 0  # load_agent restores weights (training state: resume)
 
 
-def test_the_seeded_replay_keeps_the_demos_flags_where_noise_replaced_the_experts_action():
-    """recipes/train_policy.py's expert episodes carry each step's is_expert (False at a turned rotation), and the
-    replay seeded with them keeps it: no expert bonus, no expert margin on the noise."""
-    from ldm_rl.data.replay import FrameReplay
-
+def recipe_expert_episodes(cfg):
+    """recipes/train_policy.py's ``expert_episodes(cfg)``: the demonstrations that seed a training run's replay."""
     sys.path.insert(0, str(ROOT / "recipes"))
     try:
         from train_policy import expert_episodes
     finally:
         sys.path.remove(str(ROOT / "recipes"))
+    return expert_episodes(cfg)
+
+
+def test_the_seeded_replay_keeps_the_demos_flags_where_noise_replaced_the_experts_action():
+    """recipes/train_policy.py's expert episodes carry each step's is_expert (False at a turned rotation), and the
+    replay seeded with them keeps it: no expert bonus, no expert margin on the noise."""
+    from ldm_rl.data.replay import FrameReplay
+
     cfg = config("fcdqn", "schedule.expert_episodes=2", "schedule.expert_noise.rotation_prob=0.5")
-    episodes = expert_episodes(cfg)
+    episodes = recipe_expert_episodes(cfg)
     flags = torch.cat([episode["is_expert"].reshape(-1) for episode in episodes])
     assert flags.any() and not flags.all()  # seeded: both kinds at p = 0.5
     replay = FrameReplay(64, max_height=MAX_HEIGHT, generator=torch.Generator().manual_seed(0))
@@ -420,13 +425,8 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     log scale)."""
     from ldm_rl.evaluation import episode_succeeded, pick_counts
 
-    sys.path.insert(0, str(ROOT / "recipes"))
-    try:
-        from train_policy import expert_episodes
-    finally:
-        sys.path.remove(str(ROOT / "recipes"))
     cfg = config("fcdqn", "env=bin_packing", "schedule.expert_episodes=2")
-    episodes = expert_episodes(cfg)
+    episodes = recipe_expert_episodes(cfg)
     assert len(episodes) == 2
     for episode in episodes:
         last = episode[-1]
