@@ -27,7 +27,8 @@ centred grasp (on an object, its span along the closing direction under ``--open
 whether Q's first one is, and whether the one V(f(s, a)) chooses is. ``--margin-steps K`` first fits the run's Q
 with the expert margin term alone (``agent.expert_margin_weight``; Adam, 4 expert picks per step, ``--margin-lr``)
 on its other expert picks for K steps, then reads the proposals again: what the demonstrations can teach Q about
-the grasp's pose beyond its TD targets.
+the grasp's pose beyond its TD targets. ``--frame-pad P`` reads the same weights in frames padded by P px
+(``agent.q_frame_pad``: every pixel proposable at every rotation).
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -315,14 +316,26 @@ def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: 
     return trace
 
 
+def padded_q(q, frame_pad: int):
+    """A QFCN with ``q``'s settings and weights whose frames are padded by ``frame_pad`` px (``agent.q_frame_pad``)."""
+    from ldm_rl.models.q_fcn import QFCN
+
+    padded = QFCN(q.max_height, q.num_classes, q.num_rotations, q.width, frame_margin=q.frame_margin,
+                  pick_min_height=q.pick_min_height, head_channels=q.head_channels, frame_pad=frame_pad)
+    padded.load_state_dict(q.state_dict())
+    return padded
+
+
 def proposals_report(run: Path, surface: float, max_region: int, opening: float, resolution: float,
-                     margin_steps: int, margin_lr: float) -> None:
+                     margin_steps: int, margin_lr: float, frame_pad: int = 0) -> None:
     from ldm_rl.agents import load_agent
 
     p = load_picks(run)
     agent, _ = load_agent(run / "checkpoint.pt")
     if agent.name != "ldm":
         raise SystemExit(f"--proposals reads an LDM agent's planner; {run}/checkpoint.pt holds agent {agent.name!r}")
+    if frame_pad:
+        agent.planner.q_network = padded_q(agent.planner.q_network, frame_pad)
     expert = np.nonzero(p["expert"])[0]
     mine = np.nonzero(~p["expert"])[0]
     if len(expert) <= 100 + 4 * (margin_steps > 0):
@@ -337,7 +350,7 @@ def proposals_report(run: Path, surface: float, max_region: int, opening: float,
         readings += [(f"after {margin_steps} margin steps", name,
                       proposal_reading(agent, p, rows, surface, max_region, opening, resolution)) for name, rows in groups]
     print(f"\n{run}: the greedy planner's pick proposals (fitting: span under {opening * 100:.1f} cm; centred: within "
-          f"{CENTRED:g} px of the object's centroid)")
+          f"{CENTRED:g} px of the object's centroid{f'; Q read in frames padded by {frame_pad} px' if frame_pad else ''})")
     print("| Q | pick states | proposals fitting / fitting and centred | states with one fitting and centred | "
           "Q's first proposal fitting and centred | V's choice fitting / fitting and centred |")
     print("|---|---|---|---|---|---|")
@@ -362,9 +375,13 @@ def main() -> None:
     parser.add_argument("--margin-steps", type=int, default=0,
                         help="with --proposals: first fit Q with the expert margin term alone for this many steps")
     parser.add_argument("--margin-lr", type=float, default=1e-3, help="Adam's learning rate of --margin-steps")
+    parser.add_argument("--frame-pad", type=int, default=0,
+                        help="with --proposals: read the run's Q weights in frames padded by this many px (agent.q_frame_pad)")
     args = parser.parse_args()
     if args.margin_steps < 0 or (args.margin_steps and not args.proposals):
         parser.error(f"--margin-steps must be >= 0 and goes with --proposals, got {args.margin_steps}")
+    if args.frame_pad and not args.proposals:
+        parser.error(f"--frame-pad {args.frame_pad} pads the Q that --proposals reads: pass --proposals too")
     if not args.margin_lr > 0:
         parser.error(f"--margin-lr must be > 0, got {args.margin_lr!r}")
     if args.parts < 1:
@@ -378,7 +395,7 @@ def main() -> None:
         report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
         if args.proposals:
             proposals_report(run, args.surface, args.max_region, args.opening, 0.003125, args.margin_steps,
-                             args.margin_lr)
+                             args.margin_lr, args.frame_pad)
 
 
 if __name__ == "__main__":

@@ -160,6 +160,19 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     assert bench.grasp_quality(picks, 0, (12, 10, 1), 0.012, 1500, 6.0, 1.0) == (False, False)  # along its length
     assert bench.grasp_quality(picks, 0, (12, 15, 0), 0.012, 1500, 6.0, 1.0) == (True, False)  # 5 px off the centroid
     assert bench.grasp_quality(picks, 0, (0, 0, 0), 0.012, 1500, 6.0, 1.0) == (False, False)  # bare floor
+    # --frame-pad: the same Q weights in padded frames agree with the plain maps wherever those are finite
+    from ldm_rl.models.q_fcn import QFCN
+
+    torch.manual_seed(0)
+    plain = QFCN(0.15, width=0.125, frame_margin=8)
+    padded = bench.padded_q(plain, 32)
+    assert padded.frame_size == 192 and padded.frame_margin == 8
+    scene = torch.zeros(1, 1, 128, 128)
+    scene[..., 60:70, 60:72] = 0.04
+    with torch.no_grad():
+        a, b = (q(scene, torch.zeros(1, 1, 24, 24), torch.zeros(1, 1, dtype=torch.bool)) for q in (plain, padded))
+    torch.testing.assert_close(a[..., 40:88, 40:88], b[..., 40:88, 40:88])  # far from every frame's edge
+    assert torch.isfinite(b[..., 4:-4, 4:-4]).all() and not torch.isfinite(a).all()
     # planner.pick_rotations=K as the benchmark reads it: the best p_drop among the taken bin's K evenly spaced bins
     p_drop = np.array([[0.1, 0.9, 0.2, 0.3, 0.8, 0.0, 0.7, 0.0], [0.5, 0.1, 0.1, 0.1, 0.5, 0.1, 0.1, 0.1]])
     assert bench.swept_choice(p_drop, np.array([2, 0]), 1).tolist() == [2, 0]
