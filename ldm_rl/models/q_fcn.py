@@ -247,7 +247,8 @@ class QFCN(CompiledInference, nn.Module):
         frame_pad: pixels of zeros around the scene on each side before it is rotated into each bin's frame (0 =
             the reference: the frames are the 128 px image, so near its corners a pixel falls outside the frames of
             the non-quarter bins and its Q there is ``-inf``). 32 keeps every pixel inside every frame (with an
-            8 px ``frame_margin``, all but 6 at each corner), at (192/128)² ≈ 2.25× the trunk's work (docs/policy.md, "Where Q cannot grasp").
+            8 px ``frame_margin``, all but 6 at each corner), at (192/128)² ≈ 2.25× the trunk's pixels (measured 2.6–3× a pick
+            decision's Q time at one thread; docs/policy.md, "Where Q cannot grasp").
     """
 
     CHUNK_IMAGES = 8  # trunk images per pass (measured: per-image time grows ~2x from 8 to 64 images)
