@@ -438,6 +438,8 @@ class AgentConfig:
     expert_margin_weight: float = spec(0.0, ge=0, doc="λ of DQfD's large-margin term on the expert rows (0 = off)")
     expert_margin: float = spec(0.1, gt=0, doc="l: the lead the expert's action keeps over every other (Q's fitted units)")
     expert_margin_rows: int = spec(4, ge=1, doc="expert rows per batch the margin term reads (a whole-map Q pass each)")
+    expert_margin_temperature: float = spec(0.0, ge=0, doc="τ of the margin's soft max over Q's map (Q's fitted units; "
+                                            "0 = DQfD's hard max)")
     target_range: Optional[List[float]] = None
     double_value: bool = False
     q_target: str = spec("max", choices=("max", "lookahead"), doc="Q target: r + γ max Q⁻ | the V lookahead target")

@@ -167,7 +167,8 @@ def _expert_margin(agent_cfg: dict) -> dict:
     """The Q losses' expert large-margin keys (absent in checkpoints written before them: off)."""
     return {"expert_margin_weight": float(agent_cfg.get("expert_margin_weight") or 0.0),
             "expert_margin": float(agent_cfg.get("expert_margin") or 0.1),
-            "expert_margin_rows": int(agent_cfg.get("expert_margin_rows") or 4)}
+            "expert_margin_rows": int(agent_cfg.get("expert_margin_rows") or 4),
+            "expert_margin_temperature": float(agent_cfg.get("expert_margin_temperature") or 0.0)}
 
 
 def _optimisation(agent_cfg: dict) -> dict:

@@ -32,9 +32,10 @@ class SpatialDQNLoss(TransitionLoss):
             (:meth:`~ldm_rl.objectives.TransitionLoss.lower_bounded`; not in the paper).
         q_log_floor: None (Q regresses ``y``) or ε in (0, 1): Q regresses ``log(max(y, ε))`` and ``max Q⁻`` is
             read back as ``exp`` (:class:`~ldm_rl.objectives.q_scale.QScale`; ``y`` itself is unchanged).
-        expert_margin_weight, expert_margin, expert_margin_rows: λ (0 = off, the paper), l and the row cap of
-            DQfD's large-margin term on the expert rows, added to ``loss_q`` as λ times it and reported as
-            ``expert_margin`` (:meth:`~ldm_rl.objectives.TransitionLoss.expert_margin_loss`; not in the paper).
+        expert_margin_weight, expert_margin, expert_margin_rows, expert_margin_temperature: λ (0 = off, the
+            paper), l, the row cap and the soft max's τ (0 = the hard max) of DQfD's large-margin term on the
+            expert rows, added to ``loss_q`` as λ times it and reported as ``expert_margin``
+            (:meth:`~ldm_rl.objectives.TransitionLoss.expert_margin_loss`; not in the paper).
 
     The target network is ``target_q_network_params`` (TorchRL ``convert_to_functional``), synced by a
     target updater (:class:`~ldm_rl.objectives.TargetSync`); targets run in eval mode without gradients,
@@ -47,10 +48,10 @@ class SpatialDQNLoss(TransitionLoss):
     target_q_network_params: TensorDictParams
     def __init__(self, q_network: nn.Module, *, gamma: float = 0.95, return_lower_bound: bool = False,
                  q_log_floor: float | None = None, expert_margin_weight: float = 0.0, expert_margin: float = 0.1,
-                 expert_margin_rows: int = 4) -> None:
+                 expert_margin_rows: int = 4, expert_margin_temperature: float = 0.0) -> None:
         super().__init__()
         self.q_scale = QScale(q_log_floor)
-        self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows)
+        self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows, expert_margin_temperature)
         self.return_lower_bound = bool(return_lower_bound)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")

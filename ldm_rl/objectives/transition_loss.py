@@ -45,20 +45,26 @@ class TransitionLoss(LossModule):
 
     #: raise a target to the return the episode actually collected from the transition on (set by subclasses)
     return_lower_bound: bool = False
-    #: λ, l and the row cap of the expert large-margin term (:meth:`expert_margin_loss`; λ = 0: off)
+    #: λ, l, the row cap and the temperature of the expert large-margin term (:meth:`expert_margin_loss`; λ = 0: off)
     expert_margin_weight: float = 0.0
     expert_margin: float = 0.1
     expert_margin_rows: int = 4
+    expert_margin_temperature: float = 0.0
 
-    def set_expert_margin(self, weight: float = 0.0, margin: float = 0.1, rows: int = 4) -> None:
-        """Switch the expert large-margin term on (``weight`` λ > 0) or off (0); checks the three numbers."""
-        for name, value, ok, want in (("expert_margin_weight", weight, lambda v: v >= 0, "a number >= 0 (0 = off)"),
-                                      ("expert_margin", margin, lambda v: v > 0, "a number > 0 (Q's fitted units)")):
+    def set_expert_margin(self, weight: float = 0.0, margin: float = 0.1, rows: int = 4,
+                          temperature: float = 0.0) -> None:
+        """Switch the expert large-margin term on (``weight`` λ > 0) or off (0); checks the four numbers."""
+        for name, value, ok, want in (
+                ("expert_margin_weight", weight, lambda v: v >= 0, "a number >= 0 (0 = off)"),
+                ("expert_margin", margin, lambda v: v > 0, "a number > 0 (Q's fitted units)"),
+                ("expert_margin_temperature", temperature, lambda v: v >= 0,
+                 "a number >= 0 (Q's fitted units; 0 = the hard max)")):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not ok(value):
                 raise ValueError(f"{name} must be {want}, got {value!r}")
         if isinstance(rows, bool) or not isinstance(rows, int) or rows < 1:
             raise ValueError(f"expert_margin_rows must be an int >= 1, got {rows!r}")
         self.expert_margin_weight, self.expert_margin, self.expert_margin_rows = float(weight), float(margin), rows
+        self.expert_margin_temperature = float(temperature)
 
     def expert_margin_loss(self, q_network, tensordict: TensorDictBase) -> torch.Tensor | None:
         """DQfD's large-margin term (Hester et al. 2018) on the batch's expert rows; None when off.
@@ -70,6 +76,12 @@ class TransitionLoss(LossModule):
         ``a_E`` is masked). The TD loss fits Q's values; this term orders them, so Q's argmax and proposals learn
         the expert's pose (pixel and rotation) from the demonstrations, not only from their returns. Costs one
         forward and backward pass of the whole map (all R rotations) per row: hence the cap.
+
+        With ``expert_margin_temperature`` τ > 0 the max becomes the soft max ``τ·logsumexp(·/τ)`` (≥ the hard
+        one, equal as τ → 0): its gradient lowers every action near the top in proportion to its softmax weight,
+        not the single argmax, so a flat map whose top holds thousands of near-ties is pushed below the expert's
+        action as a whole. At l = 0 it is τ times the expert's negative log-likelihood under softmax(Q/τ), the
+        planner's own proposal distribution at that temperature.
         """
         if not self.expert_margin_weight:
             return None
@@ -93,7 +105,9 @@ class TransitionLoss(LossModule):
             return q_map.new_zeros(())
         q_map, flat, q_expert = q_map[live], flat[live], q_expert[live]
         with_margin = (q_map + self.expert_margin).scatter(1, flat, q_expert)
-        return ((with_margin.amax(1, keepdim=True) - q_expert).sum() / rows.numel()).reshape(())
+        tau = self.expert_margin_temperature
+        top = tau * torch.logsumexp(with_margin / tau, 1, keepdim=True) if tau else with_margin.amax(1, keepdim=True)
+        return ((top - q_expert).sum() / rows.numel()).reshape(())
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass

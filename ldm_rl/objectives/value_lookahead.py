@@ -176,9 +176,9 @@ class LookaheadLoss(TransitionLoss):
             the model-based ``Q̂(s', a') = V(f(s', a'))`` of the paper, on actions Q itself ranks high, not only
             on the action taken. A proposal Q rates high and V rates low (a pick that would come up empty) is
             pushed down. Costs one Q training pass per pair; 0 = off (the paper). Not in the paper.
-        expert_margin_weight, expert_margin, expert_margin_rows: λ (0 = off, the paper), l and the row cap of
-            DQfD's large-margin term on the expert rows, added to ``loss_q`` as λ times it and reported as
-            ``expert_margin`` (:meth:`~ldm_rl.objectives.TransitionLoss.expert_margin_loss`): Q, which only
+        expert_margin_weight, expert_margin, expert_margin_rows, expert_margin_temperature: λ (0 = off, the
+            paper), l, the row cap and the soft max's τ (0 = the hard max) of DQfD's large-margin term on the
+            expert rows, added to ``loss_q`` as λ times it and reported as ``expert_margin`` (:meth:`~ldm_rl.objectives.TransitionLoss.expert_margin_loss`): Q, which only
             proposes, learns to rank the expert's pose first. Not in the paper.
     """
 
@@ -228,10 +228,11 @@ class LookaheadLoss(TransitionLoss):
         expert_margin_weight: float = 0.0,
         expert_margin: float = 0.1,
         expert_margin_rows: int = 4,
+        expert_margin_temperature: float = 0.0,
     ) -> None:
         super().__init__()
         self.q_scale = QScale(q_log_floor)
-        self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows)
+        self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows, expert_margin_temperature)
         if isinstance(target_uncertainty_penalty, bool) or not isinstance(target_uncertainty_penalty, (int, float)) \
                 or not target_uncertainty_penalty >= 0:
             raise ValueError(f"target_uncertainty_penalty must be a number >= 0 (V units per nat), "
