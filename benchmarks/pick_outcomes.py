@@ -27,7 +27,9 @@ centred grasp (on an object, its span along the closing direction under ``--open
 whether Q's first one is, and whether the one V(f(s, a)) chooses is. ``--margin-steps K`` first fits the run's Q
 with the expert margin term alone (``agent.expert_margin_weight``; Adam, 4 expert picks per step, ``--margin-lr``)
 on its other expert picks for K steps, then reads the proposals again: what the demonstrations can teach Q about
-the grasp's pose beyond its TD targets. ``--frame-pad P`` reads the same weights in frames padded by P px
+the grasp's pose beyond its TD targets (``--margin-temperature τ``: the soft max of
+``agent.expert_margin_temperature``). It also ranks the expert's pick in Q's whole map on the last 100 expert pick
+states: first, in the top 10, the median count of entries above it and its median gap to the best. ``--frame-pad P`` reads the same weights in frames padded by P px
 (``agent.q_frame_pad``: every pixel proposable at every rotation).
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
@@ -291,12 +293,47 @@ def proposal_reading(agent, p: dict, rows: np.ndarray, surface: float, max_regio
     return out
 
 
-def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: float = 0.1, seed: int = 0) -> list[float]:
-    """Fit ``agent``'s online Q on the picks ``rows`` with the expert margin term alone (4 picks per step); returns
-    the term's value every 50 steps."""
+def expert_ranks(q_maps: torch.Tensor, action: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Where the expert's action stands in Q's map: ``q_maps`` ``[P, R, H, W]`` (``-inf`` = never proposed), ``action``
+    ``[P, 3]`` (row, col, rotation) -> (entries strictly above it, max − its value) per proposable pick ``[P']``."""
+    flat = q_maps.flatten(1)
+    height, width = q_maps.shape[-2:]
+    index = (action[:, 2].long() * height + action[:, 0].long()) * width + action[:, 1].long()
+    own = flat.gather(1, index[:, None])
+    live = torch.isfinite(own).squeeze(1)
+    above = (flat > own).sum(1)
+    gap = flat.amax(1, keepdim=True) - own
+    return above[live].numpy(), gap[live].squeeze(1).numpy()
+
+
+def rank_reading(agent, p: dict, rows: np.ndarray, batch: int = 10) -> str:
+    """The expert's pick on ``rows`` in the planner's Q map: proposable picks, first / in the top 10, median entries
+    above it and median gap to the map's best (Q's fitted units)."""
+    q = agent.planner.q_network.eval()
+    ranks, gaps = [], []
+    with torch.no_grad():
+        for start in range(0, len(rows), batch):
+            r = rows[start:start + batch]
+            maps = q(torch.from_numpy(p["heightmap"][r]).unsqueeze(1), torch.zeros(len(r), 1, p["hand_size"], p["hand_size"]),
+                     torch.zeros(len(r), 1, dtype=torch.bool)).float()
+            above, gap = expert_ranks(maps, torch.from_numpy(p["action"][r]).reshape(-1, 3))
+            ranks.append(above)
+            gaps.append(gap)
+    ranks, gaps = np.concatenate(ranks), np.concatenate(gaps)
+    if not len(ranks):
+        return f"0 of {len(rows)} proposable"
+    return (f"{len(ranks)} of {len(rows)} proposable; first {int((ranks == 0).sum())}, top 10 {int((ranks < 10).sum())}; "
+            f"median {np.median(ranks):.0f} entries above it, {np.median(gaps):.3f} below the best")
+
+
+def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: float = 0.1, seed: int = 0,
+               temperature: float = 0.0) -> list[float]:
+    """Fit ``agent``'s online Q on the picks ``rows`` with the expert margin term alone (4 picks per step; soft max
+    at ``temperature`` > 0); returns the term's value every 50 steps."""
     from ldm_rl.objectives import SpatialDQNLoss
 
-    loss = SpatialDQNLoss(agent.planner.q_network, expert_margin_weight=1.0, expert_margin=margin, expert_margin_rows=4)
+    loss = SpatialDQNLoss(agent.planner.q_network, expert_margin_weight=1.0, expert_margin=margin, expert_margin_rows=4,
+                          expert_margin_temperature=temperature)
     optimiser = torch.optim.Adam(list(loss.q_network_params.values(True, True)), lr=lr)
     rng, trace = np.random.default_rng(seed), []
     for step in range(steps):
@@ -327,7 +364,7 @@ def padded_q(q, frame_pad: int):
 
 
 def proposals_report(run: Path, surface: float, max_region: int, opening: float, resolution: float,
-                     margin_steps: int, margin_lr: float, frame_pad: int = 0) -> None:
+                     margin_steps: int, margin_lr: float, frame_pad: int = 0, margin_temperature: float = 0.0) -> None:
     from ldm_rl.agents import load_agent
 
     p = load_picks(run)
@@ -343,12 +380,15 @@ def proposals_report(run: Path, surface: float, max_region: int, opening: float,
     groups = (("expert (last 100)", expert[-100:]), ("agent (last 100)", mine[-100:]))
     readings = [("as trained", name, proposal_reading(agent, p, rows, surface, max_region, opening, resolution))
                 for name, rows in groups]
+    ranks = [("as trained", rank_reading(agent, p, expert[-100:]))]
     if margin_steps:
-        trace = fit_margin(agent, p, expert[:-100], margin_steps, margin_lr)
-        print(f"\nthe margin term over {margin_steps} steps on the other {len(expert) - 100} expert picks: "
+        trace = fit_margin(agent, p, expert[:-100], margin_steps, margin_lr, temperature=margin_temperature)
+        print(f"\nthe margin term over {margin_steps} steps on the other {len(expert) - 100} expert picks"
+              f"{f' (soft max, τ = {margin_temperature:g})' if margin_temperature else ''}: "
               + " → ".join(f"{t:.3f}" for t in trace))
         readings += [(f"after {margin_steps} margin steps", name,
                       proposal_reading(agent, p, rows, surface, max_region, opening, resolution)) for name, rows in groups]
+        ranks.append((f"after {margin_steps} margin steps", rank_reading(agent, p, expert[-100:])))
     print(f"\n{run}: the greedy planner's pick proposals (fitting: span under {opening * 100:.1f} cm; centred: within "
           f"{CENTRED:g} px of the object's centroid{f'; Q read in frames padded by {frame_pad} px' if frame_pad else ''})")
     print("| Q | pick states | proposals fitting / fitting and centred | states with one fitting and centred | "
@@ -358,6 +398,9 @@ def proposals_report(run: Path, surface: float, max_region: int, opening: float,
         n = r["states"]
         print(f"| {when} | {name} | {r['fit'] / r['proposals']:.2f} / {r['good'] / r['proposals']:.2f} | "
               f"{r['any good']} / {n} | {r['first good']} / {n} | {r['chosen fit']} / {r['chosen good']} of {n} |")
+    print("\nthe expert's pick in Q's whole map, last 100 expert pick states:")
+    for when, line in ranks:
+        print(f"  {when}: {line}")
 
 
 def main() -> None:
@@ -375,6 +418,8 @@ def main() -> None:
     parser.add_argument("--margin-steps", type=int, default=0,
                         help="with --proposals: first fit Q with the expert margin term alone for this many steps")
     parser.add_argument("--margin-lr", type=float, default=1e-3, help="Adam's learning rate of --margin-steps")
+    parser.add_argument("--margin-temperature", type=float, default=0.0,
+                        help="τ of --margin-steps' soft max (agent.expert_margin_temperature; 0 = the hard max)")
     parser.add_argument("--frame-pad", type=int, default=0,
                         help="with --proposals: read the run's Q weights in frames padded by this many px (agent.q_frame_pad)")
     args = parser.parse_args()
@@ -384,6 +429,8 @@ def main() -> None:
         parser.error(f"--frame-pad {args.frame_pad} pads the Q that --proposals reads: pass --proposals too")
     if not args.margin_lr > 0:
         parser.error(f"--margin-lr must be > 0, got {args.margin_lr!r}")
+    if not args.margin_temperature >= 0:
+        parser.error(f"--margin-temperature must be >= 0, got {args.margin_temperature!r}")
     if args.parts < 1:
         parser.error(f"--parts must be >= 1, got {args.parts}")
     if args.rotations and not args.model:
@@ -395,7 +442,7 @@ def main() -> None:
         report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
         if args.proposals:
             proposals_report(run, args.surface, args.max_region, args.opening, 0.003125, args.margin_steps,
-                             args.margin_lr, args.frame_pad)
+                             args.margin_lr, args.frame_pad, args.margin_temperature)
 
 
 if __name__ == "__main__":

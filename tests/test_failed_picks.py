@@ -173,6 +173,10 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
         a, b = (q(scene, torch.zeros(1, 1, 24, 24), torch.zeros(1, 1, dtype=torch.bool)) for q in (plain, padded))
     torch.testing.assert_close(a[..., 40:88, 40:88], b[..., 40:88, 40:88])  # far from every frame's edge
     assert torch.isfinite(b[..., 4:-4, 4:-4]).all() and not torch.isfinite(a).all()
+    # --proposals' rank of the expert's action in Q's map: entries strictly above it and the gap to the best, masked out
+    maps = torch.tensor([[[[0.0, 0.5], [0.2, 0.1]]], [[[0.3, float("-inf")], [0.3, 0.1]]], [[[1.0, float("-inf")], [0.0, 0.0]]]])
+    above, gap = bench.expert_ranks(maps, torch.tensor([[1, 0, 0], [0, 0, 0], [0, 1, 0]]))
+    assert above.tolist() == [1, 0] and gap.tolist() == pytest.approx([0.3, 0.0])  # a tie is not above; the third: masked
     # planner.pick_rotations=K as the benchmark reads it: the best p_drop among the taken bin's K evenly spaced bins
     p_drop = np.array([[0.1, 0.9, 0.2, 0.3, 0.8, 0.0, 0.7, 0.0], [0.5, 0.1, 0.1, 0.1, 0.5, 0.1, 0.1, 0.1]])
     assert bench.swept_choice(p_drop, np.array([2, 0]), 1).tolist() == [2, 0]
