@@ -22,7 +22,8 @@ Last, the agent's on-object picks in ``--parts`` consecutive parts of equal size
 share that held and the share whose object's span fits the open fingers, part by part, so whether the agent's picks
 improve over training.
 With ``--proposals`` (an LDM agent's run): its greedy planner's N pick proposals on the last 100 expert pick states
-and the last 100 of the agent's, read with the run's ``checkpoint.pt`` (online weights): how many are a fitting,
+and the last 100 of the agent's, read with the run's ``checkpoint.pt`` (online weights; ``--weights best_policy.pt``:
+the selected ones, on the same states): how many are a fitting,
 centred grasp (on an object, its span along the closing direction under ``--opening``, within 4 px of its centroid),
 whether Q's first one is, and whether the one V(f(s, a)) chooses is. ``--margin-steps K`` first fits the run's Q
 with the expert margin term alone (``agent.expert_margin_weight``; Adam, 4 expert picks per step, ``--margin-lr``)
@@ -364,13 +365,14 @@ def padded_q(q, frame_pad: int):
 
 
 def proposals_report(run: Path, surface: float, max_region: int, opening: float, resolution: float,
-                     margin_steps: int, margin_lr: float, frame_pad: int = 0, margin_temperature: float = 0.0) -> None:
+                     margin_steps: int, margin_lr: float, frame_pad: int = 0, margin_temperature: float = 0.0,
+                     weights: str = "checkpoint.pt") -> None:
     from ldm_rl.agents import load_agent
 
     p = load_picks(run)
-    agent, _ = load_agent(run / "checkpoint.pt")
+    agent, _ = load_agent(run / weights)
     if agent.name != "ldm":
-        raise SystemExit(f"--proposals reads an LDM agent's planner; {run}/checkpoint.pt holds agent {agent.name!r}")
+        raise SystemExit(f"--proposals reads an LDM agent's planner; {run}/{weights} holds agent {agent.name!r}")
     if frame_pad:
         agent.planner.q_network = padded_q(agent.planner.q_network, frame_pad)
     expert = np.nonzero(p["expert"])[0]
@@ -422,7 +424,13 @@ def main() -> None:
                         help="τ of --margin-steps' soft max (agent.expert_margin_temperature; 0 = the hard max)")
     parser.add_argument("--frame-pad", type=int, default=0,
                         help="with --proposals: read the run's Q weights in frames padded by this many px (agent.q_frame_pad)")
+    parser.add_argument("--weights", default="checkpoint.pt",
+                        help="with --proposals: the weights file in each run folder to read (best_policy.pt: the selected ones)")
     args = parser.parse_args()
+    if args.weights not in ("checkpoint.pt", "best_policy.pt"):
+        parser.error(f"--weights must be checkpoint.pt or best_policy.pt (a file in the run folder), got {args.weights!r}")
+    if args.weights != "checkpoint.pt" and not args.proposals:
+        parser.error(f"--weights {args.weights} names the weights --proposals reads: pass --proposals too")
     if args.margin_steps < 0 or (args.margin_steps and not args.proposals):
         parser.error(f"--margin-steps must be >= 0 and goes with --proposals, got {args.margin_steps}")
     if args.frame_pad and not args.proposals:
@@ -442,7 +450,7 @@ def main() -> None:
         report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
         if args.proposals:
             proposals_report(run, args.surface, args.max_region, args.opening, 0.003125, args.margin_steps,
-                             args.margin_lr, args.frame_pad, args.margin_temperature)
+                             args.margin_lr, args.frame_pad, args.margin_temperature, args.weights)
 
 
 if __name__ == "__main__":

@@ -195,3 +195,24 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     with pytest.raises(ValueError, match="parts must be an int >= 1, got 0"):
         bench.over_training(held, fits, 0)
     assert np.isnan(bench.auroc(np.array([0.5, 0.5]), np.array([True, True])))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--proposals", "--weights", "policy.pt"], "--weights must be checkpoint.pt or best_policy.pt"),
+    (["--weights", "best_policy.pt"], "pass --proposals too"),
+])
+def test_pick_outcomes_refuses_weights_it_cannot_read(argv, message, monkeypatch, capsys, tmp_path):
+    """--weights names a file of the run folder (the final or the selected weights), and only --proposals reads it:
+    anything else stops at the parser with one line naming the value."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pick_outcomes.py"
+    spec = importlib.util.spec_from_file_location("pick_outcomes", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    monkeypatch.setattr(sys, "argv", ["pick_outcomes.py", str(tmp_path), *argv])
+    with pytest.raises(SystemExit) as stop:
+        bench.main()
+    assert stop.value.code == 2 and message in capsys.readouterr().err
