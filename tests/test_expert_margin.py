@@ -137,6 +137,7 @@ def map_batch(n: int = 1, size: int = 16):
                        "is_expert": torch.ones(n, 1, dtype=torch.bool)}, batch_size=[n])
 
 
+@torch.no_grad()  # values only: the gradients are the other tests'
 def test_the_soft_max_is_tau_logsumexp_above_the_hard_max_and_tends_to_it():
     table = flat_top_map()
     loss = SpatialDQNLoss(MapQ(table), expert_margin_weight=1.0, expert_margin=0.1)
