@@ -20,6 +20,18 @@ from policy_helpers import scenes, tiny_networks
 EMPTY_CORNER = (12, 12, 0)  # a pick far from every cube of the seeded scenes below: the hand stays empty
 
 
+def load_pick_outcomes():
+    """benchmarks/pick_outcomes.py as a module (benchmarks/ is not a package)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pick_outcomes.py"
+    spec = importlib.util.spec_from_file_location("pick_outcomes", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench
+
+
 def test_mask_actions_matches_a_loop_oracle_and_ignores_padding():
     g = torch.Generator().manual_seed(0)
     q = torch.randn(2, 6, 9, 9, generator=g)
@@ -133,15 +145,9 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     floor or on a region too large to be an object), the object's span along the fingers' closing direction,
     the AUROC of a score against an outcome, the rotation a sweep of K bins chooses, and whether a pick is a
     fitting, centred grasp."""
-    import importlib.util
-    from pathlib import Path
-
     import numpy as np
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pick_outcomes.py"
-    spec = importlib.util.spec_from_file_location("pick_outcomes", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_pick_outcomes()
     heightmap = np.zeros((32, 32), np.float32)
     heightmap[10:15, 10:15] = 0.03  # a 5×5 px block, centroid (12, 12)
     assert bench.centroid_distance(heightmap, np.array([12, 14]), 0.012, 1500) == 2.0
@@ -204,14 +210,9 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
 def test_pick_outcomes_refuses_weights_it_cannot_read(argv, message, monkeypatch, capsys, tmp_path):
     """--weights names a file of the run folder (the final or the selected weights), and only --proposals reads it:
     anything else stops at the parser with one line naming the value."""
-    import importlib.util
     import sys
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pick_outcomes.py"
-    spec = importlib.util.spec_from_file_location("pick_outcomes", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_pick_outcomes()
     monkeypatch.setattr(sys, "argv", ["pick_outcomes.py", str(tmp_path), *argv])
     with pytest.raises(SystemExit) as stop:
         bench.main()
