@@ -1,0 +1,269 @@
+"""Where bin packing's pile height comes from: how the blocks come to rest, what the world model predicted, what V chose.
+
+    python benchmarks/place_outcomes.py <run>/checkpoint.pt [--episodes 30] [--planner uncertainty_penalty=0.25 ...]
+
+Plays a bin-packing checkpoint's greedy policy on the held-out scenes of ``recipes/evaluate.py`` (``--seed``), then
+the scripted expert on the same scenes. Per place that leaves its block in the bin: whether the block rests *tilted*
+(its axis nearest the vertical more than ``--tilt`` degrees off it) or *raised* (its AABB more than 6 mm taller than
+the block lying on its widest face), whether it was tilted in the hand before the place, and how far the place raised
+the pile (the highest point over the bin's floor, read from the heightmap). For the agent's places (an LDM agent) also
+the world model's prediction for the place taken: the pile top it predicted against the real one (*missed rises*: the
+real top more than 1 cm above the predicted), and among the N candidates the planner scored, those the model predicts
+to put the block into the bin (more than ``--min-volume`` m³ added inside it): the rank correlation of V with their
+predicted pile tops (negative: V prefers the lower piles) and how often the chosen one's predicted top is more than
+2 mm above the lowest of them. A measurement of decisions, not of time; run by hand (docs/policy.md, "Bin packing").
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+import numpy as np
+import torch
+
+RAISED_SLACK = 0.006  # m
+MISSED_RISE = 0.01  # m
+HIGHER_CHOICE = 0.002  # m
+
+
+def tilt_degrees(rotation: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between the world's z axis and the body axis nearest to it, for rotation matrices
+    ``[..., 3, 3]`` (columns: the body's axes in world coordinates); 0 for a block resting on any face."""
+    cos = np.abs(rotation[..., 2, :]).max(-1)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def lying_height(half_extents) -> float:
+    """A box-like block's height lying on its widest face, m: twice its smallest half extent."""
+    return 2.0 * float(min(half_extents))
+
+
+def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman's rank correlation of ``x`` and ``y`` ``[N]`` (average ranks for ties); nan when either is constant."""
+    def ranks(v):
+        order = np.argsort(v, kind="stable")
+        r = np.empty(len(v))
+        r[order] = np.arange(len(v), dtype=float)
+        for value in np.unique(v):  # average the ranks of ties
+            tied = v == value
+            r[tied] = r[tied].mean()
+        return r
+
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(x) < 2 or np.ptp(x) == 0 or np.ptp(y) == 0:
+        return float("nan")
+    return float(np.corrcoef(ranks(x), ranks(y))[0, 1])
+
+
+def bin_interior(task, inset: float = 0.004) -> np.ndarray:
+    """``[H, W]`` bool: heightmap pixels whose centre lies inside the bin's inner walls less ``inset`` m."""
+    from ldm_rl.envs.tasks.bin_packing import BIN
+
+    ws = task.workspace
+    centres = (np.arange(ws.pixels) + 0.5) * ws.resolution
+    xy = np.stack(np.meshgrid(ws.x_min + centres, ws.y_min + centres, indexing="ij"), -1)
+    uv = task.bin.to_local(xy.reshape(-1, 2)).reshape(ws.pixels, ws.pixels, 2)
+    return (np.abs(uv[..., 0]) < BIN.inner_x / 2 - inset) & (np.abs(uv[..., 1]) < BIN.inner_y / 2 - inset)
+
+
+def block_states(task) -> dict[int, dict]:
+    """Every block's state now: in the bin (centre seen from above), tilt (degrees), AABB height (m), lying height."""
+    import pybullet as pb
+
+    states = {}
+    for obj in task.sim.objects:
+        low, high = task.sim.aabb(obj.body)
+        position, quaternion = task.sim.pose(obj.body)
+        rotation = np.array(pb.getMatrixFromQuaternion(list(quaternion))).reshape(3, 3)
+        states[obj.body] = {"in_bin": bool(task.bin.contains(position)), "tilt": float(tilt_degrees(rotation)),
+                            "height": float(high[2] - low[2]), "lying": lying_height(obj.half_extents)}
+    return states
+
+
+def place_rows(snapshots: list[dict], tilt: float) -> list[dict]:
+    """One row per place into the bin from the per-decision ``snapshots`` (``held``: the held body or None,
+    ``blocks``: :func:`block_states`, plus the one after the last decision)."""
+    rows = []
+    for before, after in zip(snapshots[:-1], snapshots[1:]):
+        body = before["held"]
+        if body is None or after["held"] is not None or not after["blocks"][body]["in_bin"]:
+            continue
+        rest = after["blocks"][body]
+        rows.append({"tilted": rest["tilt"] > tilt, "raised": rest["height"] > rest["lying"] + RAISED_SLACK,
+                     "tilted_in_hand": before["blocks"][body]["tilt"] > tilt, "step": before["step"]})
+    return rows
+
+
+def recorder(policy, task):
+    """``policy`` wrapped as the TensorDict module ``env.rollout`` calls, snapshotting the task's blocks before
+    each decision into its ``snapshots`` (the caller clears them per episode)."""
+    from tensordict.nn import TensorDictModuleBase
+
+    class Recorder(TensorDictModuleBase):
+        in_keys, out_keys = [], []
+
+        def __init__(self):
+            super().__init__()
+            self.snapshots = []
+
+        def forward(self, tensordict):
+            self.snapshots.append(snapshot(task, len(self.snapshots)))
+            return policy(tensordict)
+
+    return Recorder()
+
+
+def snapshot(task, step: int) -> dict:
+    """The held body (or None) and :func:`block_states` at decision ``step``."""
+    held = task.gripper.held
+    return {"held": None if held is None else held.body, "blocks": block_states(task), "step": step}
+
+
+def decision_rows(rollout, planner, interior: torch.Tensor, min_volume: float, resolution: float) -> list[dict]:
+    """Per place decision of an LDM agent's ``rollout``: the world model's predicted pile top for the place taken
+    against the real one, and V against the predicted pile tops of the candidates predicted to enter the bin."""
+    from ldm_rl.planning.lookahead import lookahead
+
+    rows = []
+    for t in range(rollout.shape[0]):
+        step = rollout[t]
+        if not bool(step["holding"].reshape(-1)[0]):
+            continue
+        heightmap, candidates = step["heightmap"][None], step["candidate_actions"][None]
+        result = lookahead(planner.dynamics, planner.value_network, heightmap, step["in_hand"][None],
+                           step["holding"].reshape(1, 1), candidates, with_states=True)
+        predicted = result.next_heightmap[0, :, 0][:, interior]  # [N, P] m
+        before = heightmap[0, 0][interior]
+        tops = predicted.amax(-1).numpy()
+        added = ((predicted - before).clamp(min=0).sum(-1) * resolution ** 2).numpy()  # m^3 inside the bin
+        chosen = int((candidates[0] == step["action"].reshape(1, -1)).all(-1).float().argmax())
+        entering = added > min_volume
+        values = result.values[0].reshape(len(tops)).numpy()
+        rows.append({"real_top": float(step["next", "heightmap"][0][interior].max()), "predicted_top": float(tops[chosen]),
+                     "chosen_enters": bool(entering[chosen]), "entering": int(entering.sum()),
+                     "rho": rank_correlation(tops[entering], values[entering]) if entering.sum() >= 3 else float("nan"),
+                     "above_lowest": float(tops[chosen] - tops[entering].min()) if entering[chosen] else float("nan")})
+    return rows
+
+
+def play(env, task, policy, episodes: int, seed: int, tilt: float, on_episode=None) -> tuple[list[dict], list[float]]:
+    """Greedy episodes on the held-out scenes of ``seed``: the place rows and each packed episode's pile top (m)."""
+    from ldm_rl.envs.tasks.bin_packing import pile_top_from_reward
+    from ldm_rl.evaluation import evaluate_policy
+    from ldm_rl.seeds import held_out_scenes
+
+    module, places, tops = recorder(policy, task), [], []
+
+    def record(index, rollout):
+        places.extend(place_rows(module.snapshots + [snapshot(task, len(module.snapshots))], tilt))
+        module.snapshots = []
+        if task.pack_reward > 0:
+            tops.append(pile_top_from_reward(task.pack_reward))
+        if on_episode is not None:
+            on_episode(index, rollout)
+
+    evaluate_policy(env, module, episodes, seed=held_out_scenes(seed), on_episode=record)
+    return places, tops
+
+
+def summary(name: str, places: list[dict], tops: list[float], episodes: int) -> str:
+    tilted = np.mean([p["tilted"] for p in places]) if places else float("nan")
+    raised = np.mean([p["raised"] for p in places]) if places else float("nan")
+    in_hand = np.mean([p["tilted_in_hand"] for p in places]) if places else float("nan")
+    top = f"{100 * np.mean(tops):.1f} cm" if tops else "-"
+    return (f"| {name} | {len(tops)} / {episodes} | {top} | {len(places)} | {100 * tilted:.0f} % | {100 * raised:.0f} % "
+            f"| {100 * in_hand:.0f} % |")
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoint", help="a bin-packing run's checkpoint.pt (or best_policy.pt)")
+    parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0, help="the held-out scenes of recipes/evaluate.py seed=...")
+    parser.add_argument("--planner", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="planner settings over the checkpoint's (as recipes/evaluate.py planner.KEY=VALUE)")
+    parser.add_argument("--tilt", type=float, default=10.0, help="degrees off the nearest face-down pose: tilted")
+    parser.add_argument("--min-volume", type=float, default=1.5e-5,
+                        help="m^3 a candidate must add inside the bin to count as entering it (half a half cube)")
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if not 0 < args.tilt < 90:
+        parser.error(f"--tilt must be in (0, 90) degrees, got {args.tilt}")
+    planner = {}
+    for item in args.planner:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            parser.error(f"--planner takes KEY=VALUE items, got {item!r}")
+        planner[key] = _number(value)
+    args.planner = planner
+    return args
+
+
+def _number(text: str):
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    from ldm_rl.agents import load_agent
+    from ldm_rl.envs import expert_policy, make_env_from_config
+    from ldm_rl.envs.torchrl_env import unwrap
+    from ldm_rl.evaluation import is_bin_packing
+    from ldm_rl.torch_utils import seed_everything, set_threads
+
+    set_threads(1)
+    seed_everything(args.seed)
+    agent, cfg = load_agent(args.checkpoint, planner=args.planner or None)
+    env = make_env_from_config(dict(cfg["env"]))
+    if not is_bin_packing(env):
+        sys.exit(f"error: {args.checkpoint} plays {cfg['env']['id']}, not bin packing")
+    task = unwrap(env)
+    planner = agent.greedy_policy if agent.name == "ldm" else None
+    decisions: list[dict] = []
+
+    def read_decisions(index, rollout):
+        interior = torch.as_tensor(bin_interior(task))
+        decisions.extend(decision_rows(rollout, planner, interior, args.min_volume, task.workspace.resolution))
+
+    with torch.no_grad():
+        agent_places, agent_tops = play(env, task, agent.evaluation_policy(), args.episodes, args.seed, args.tilt,
+                                        read_decisions if planner is not None else None)
+        expert_places, expert_tops = play(env, task, expert_policy(env), args.episodes, args.seed, args.tilt)
+    print(f"{args.checkpoint}, {args.episodes} held-out scenes (seed {args.seed})"
+          + (f", planner {args.planner}" if args.planner else ""))
+    print("| who | packed | mean pile top of the packs | places into the bin | resting tilted | raised | tilted in the hand |")
+    print("|---|---|---|---|---|---|---|")
+    print(summary(f"{agent.name} agent", agent_places, agent_tops, args.episodes))
+    print(summary("scripted expert", expert_places, expert_tops, args.episodes))
+    if decisions:
+        real = np.array([d["real_top"] for d in decisions])
+        predicted = np.array([d["predicted_top"] for d in decisions])
+        rho = np.array([d["rho"] for d in decisions])
+        above = np.array([d["above_lowest"] for d in decisions])
+        rho, above = rho[np.isfinite(rho)], above[np.isfinite(above)]
+        print(f"\nplace decisions: {len(decisions)}; candidates predicted to enter the bin "
+              f"{np.mean([d['entering'] for d in decisions]):.1f} of {planner.num_candidates} per decision, the chosen one among "
+              f"them in {100 * np.mean([d['chosen_enters'] for d in decisions]):.0f} %")
+        print(f"world model, the place taken: real pile top - predicted {100 * np.mean(real - predicted):+.2f} cm on "
+              f"average, |.| {100 * np.mean(np.abs(real - predicted)):.2f} cm; missed rises (real > predicted + 1 cm) "
+              f"{100 * np.mean(real - predicted > MISSED_RISE):.0f} %")
+        if len(rho):
+            print(f"V against the predicted pile top among the entering candidates (>= 3): rank correlation "
+                  f"{np.mean(rho):+.2f} on average over {len(rho)} decisions (negative in {100 * np.mean(rho < 0):.0f} %, "
+                  f"positive in {100 * np.mean(rho > 0):.0f} %: V prefers lower piles where negative)")
+        if len(above):
+            print(f"chosen predicted top above the lowest entering candidate's: {100 * np.mean(above):.2f} cm on average, "
+                  f"> {1000 * HIGHER_CHOICE:.0f} mm in {100 * np.mean(above > HIGHER_CHOICE):.0f} % of "
+                  f"{len(above)} decisions")
+
+
+if __name__ == "__main__":
+    main()
