@@ -552,7 +552,7 @@ def _differences(a, b, prefix=""):
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit",
                             "agent.q_pick_min_height", "model.hand_rule.kind", "env.failed_pick_memory",
-                            "agent.expert_margin_weight", "agent.q_frame_pad"}),
+                            "agent.expert_margin_weight", "agent.q_frame_pad", "planner.greedy_uncertainty_penalty"}),
 ])
 def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, task_keys):
     """The comparison's presets share curves_block_stacking's settings; a preset changes only the env and the
@@ -601,6 +601,9 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert bottles.planner.uncertainty_penalty == (0.25 if agent == "ldm" else 0.0) and house.planner.uncertainty_penalty == 0.0
     assert bottles.planner.greedy_uncertainty_penalty == (1.0 if agent == "ldm" else None)
     assert house.planner.greedy_uncertainty_penalty is None
+    # bin packing's greedy decisions score V − 1.0·H (the ldm agent's planner only); its exploring stays at V alone
+    assert cfg.planner.greedy_uncertainty_penalty == (1.0 if agent == "ldm" else None)
+    assert cfg.planner.uncertainty_penalty == 0.0
     config_schema.validate_config(bottles, config_schema.TrainPolicyConfig)
     if agent != "rs":
         from ldm_rl.agents import build_agent
