@@ -68,13 +68,9 @@ def test_routing_equals_running_each_head_on_its_samples():
 
 def test_speed_benchmark_alternatives_compute_the_same_function():
     """benchmarks/bench_upconv.py times Winograd and single-call up-convs as exact stand-ins for ours."""
-    import importlib.util
-    from pathlib import Path
+    from benchmark_loader import load_benchmark
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_upconv.py"
-    spec = importlib.util.spec_from_file_location("bench_upconv", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("bench_upconv")
     diffs = bench.check_exact()
     assert set(diffs) == {"winograd", "transposed", "3x3+shuffle"}
     assert all(d < 1e-12 for d in diffs.values()), diffs

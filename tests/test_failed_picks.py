@@ -15,21 +15,10 @@ from ldm_rl.envs.memory import FailedPickMemory
 from ldm_rl.planning.planner import LookaheadPlanner
 from ldm_rl.planning.q_map import QMapPolicy
 from ldm_rl.planning.sampling import mask_actions
+from benchmark_loader import load_benchmark
 from policy_helpers import scenes, tiny_networks
 
 EMPTY_CORNER = (12, 12, 0)  # a pick far from every cube of the seeded scenes below: the hand stays empty
-
-
-def load_pick_outcomes():
-    """benchmarks/pick_outcomes.py as a module (benchmarks/ is not a package)."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "pick_outcomes.py"
-    spec = importlib.util.spec_from_file_location("pick_outcomes", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
 
 
 def test_mask_actions_matches_a_loop_oracle_and_ignores_padding():
@@ -147,7 +136,7 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     fitting, centred grasp."""
     import numpy as np
 
-    bench = load_pick_outcomes()
+    bench = load_benchmark("pick_outcomes")
     heightmap = np.zeros((32, 32), np.float32)
     heightmap[10:15, 10:15] = 0.03  # a 5×5 px block, centroid (12, 12)
     assert bench.centroid_distance(heightmap, np.array([12, 14]), 0.012, 1500) == 2.0
@@ -212,7 +201,7 @@ def test_pick_outcomes_refuses_weights_it_cannot_read(argv, message, monkeypatch
     anything else stops at the parser with one line naming the value."""
     import sys
 
-    bench = load_pick_outcomes()
+    bench = load_benchmark("pick_outcomes")
     monkeypatch.setattr(sys, "argv", ["pick_outcomes.py", str(tmp_path), *argv])
     with pytest.raises(SystemExit) as stop:
         bench.main()

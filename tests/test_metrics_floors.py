@@ -13,7 +13,6 @@ from tensordict import TensorDict
 from ldm_rl.world_model.metrics import (MetricSettings, floor_transition_metrics, format_report, summarize,
                                         summarize_floors, transition_metrics)
 
-ROOT = Path(__file__).resolve().parents[1]
 MAX_HEIGHT, K = 0.15, 21
 STEP = MAX_HEIGHT / (K - 1)  # metres per depth class
 SETTINGS = MetricSettings(max_height=MAX_HEIGHT, num_classes=K)
@@ -186,11 +185,9 @@ def test_aggregate_table1_shows_floors_once_per_held_out_set_and_the_iou_columns
 def test_ldm_zero_shot_benchmark_reads_the_stack_level_at_the_action():
     """benchmarks/ldm_zero_shot.py: a place's level is the objects stacked at its pixel after it, a pick's before it,
     the highest pixel within ±2 px of the action over one object's height."""
-    import importlib.util
+    from benchmark_loader import load_benchmark
 
-    spec = importlib.util.spec_from_file_location("ldm_zero_shot", ROOT / "benchmarks" / "ldm_zero_shot.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("ldm_zero_shot")
     before, after = torch.zeros(4, 1, 128, 128), torch.zeros(4, 1, 128, 128)
     before[0, :, 40:50, 40:50] = 0.08  # a pick on a 2-stack (lands 2 px outside the cube's edge: still read)
     after[1, :, 60:70, 60:70] = 0.16  # a place making a 4-stack

@@ -2,21 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-
-def load_place_outcomes():
-    """benchmarks/place_outcomes.py as a module (benchmarks/ is not a package)."""
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "place_outcomes.py"
-    spec = importlib.util.spec_from_file_location("place_outcomes", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
+from benchmark_loader import load_benchmark
 
 
 def rotation(axis: str, degrees: float) -> np.ndarray:
@@ -26,7 +17,7 @@ def rotation(axis: str, degrees: float) -> np.ndarray:
 
 
 def test_tilt_is_the_angle_to_the_nearest_face_down_pose():
-    bench = load_place_outcomes()
+    bench = load_benchmark("place_outcomes")
     assert bench.tilt_degrees(np.eye(3)) == pytest.approx(0.0, abs=1e-6)
     assert bench.tilt_degrees(rotation("z", 70.0)) == pytest.approx(0.0, abs=1e-6)  # yaw is not tilt
     assert bench.tilt_degrees(rotation("x", 90.0)) == pytest.approx(0.0, abs=1e-6)  # on another face: not tilted
@@ -37,7 +28,7 @@ def test_tilt_is_the_angle_to_the_nearest_face_down_pose():
 
 
 def test_rank_correlation_is_spearmans_with_ties_and_nan_for_constants():
-    bench = load_place_outcomes()
+    bench = load_benchmark("place_outcomes")
     x = np.array([0.05, 0.02, 0.09, 0.04])
     assert bench.rank_correlation(x, x ** 3) == pytest.approx(1.0)
     assert bench.rank_correlation(x, -x) == pytest.approx(-1.0)
@@ -53,7 +44,7 @@ def block(in_bin=True, tilt=0.0, height=0.04, lying=0.04):
 
 
 def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
-    bench = load_place_outcomes()
+    bench = load_benchmark("place_outcomes")
     snapshots = [
         {"held": None, "step": 0, "blocks": {1: block(in_bin=False), 2: block(in_bin=False)}},  # a pick
         {"held": 1, "step": 1, "blocks": {1: block(in_bin=False, tilt=15.0), 2: block(in_bin=False)}},  # place 1
@@ -75,14 +66,14 @@ def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
     (["--planner", "name"], "--planner takes KEY=VALUE items, got 'name'"),
 ])
 def test_place_outcomes_refuses_bad_arguments_in_one_line(argv, message, capsys):
-    bench = load_place_outcomes()
+    bench = load_benchmark("place_outcomes")
     with pytest.raises(SystemExit):
         bench.parse_args(["run/checkpoint.pt", *argv])
     assert message in capsys.readouterr().err
 
 
 def test_planner_settings_are_read_as_numbers_and_flags():
-    bench = load_place_outcomes()
+    bench = load_benchmark("place_outcomes")
     args = bench.parse_args(["c.pt", "--planner", "uncertainty_penalty=0.25", "name=tree", "depth=2",
                              "empty_picks_last=true"])
     assert args.planner == {"uncertainty_penalty": 0.25, "name": "tree", "depth": 2, "empty_picks_last": True}

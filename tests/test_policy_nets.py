@@ -479,13 +479,9 @@ def test_head_channels_set_the_heads_hidden_units_and_default_to_eight_scaled_by
 def test_q_heads_benchmark_tells_a_flat_head_from_one_running_on_the_leaky_slope():
     """benchmarks/q_heads.py: per hidden unit the share of pixels where it is positive, and the map's spread over
     object pixels: units far below 0 still give a map that varies (slope 0.01), units held at 0 give a flat one."""
-    import importlib.util
-    from pathlib import Path
+    from benchmark_loader import load_benchmark
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "q_heads.py"
-    spec = importlib.util.spec_from_file_location("q_heads", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("q_heads")
     heightmap, in_hand, _ = q_states(2, seed=3)
     picking = (heightmap, in_hand, torch.zeros(2, 1, dtype=torch.bool))
     torch.manual_seed(0)
