@@ -217,11 +217,15 @@ def main(argv=None) -> None:
     from ldm_rl.envs import expert_policy, make_env_from_config
     from ldm_rl.envs.torchrl_env import unwrap
     from ldm_rl.evaluation import is_bin_packing
+    from ldm_rl.run.checkpoint import CheckpointError
     from ldm_rl.torch_utils import seed_everything, set_threads
 
     set_threads(1)
     seed_everything(args.seed)
-    agent, cfg = load_agent(args.checkpoint, planner=args.planner or None)
+    try:
+        agent, cfg = load_agent(args.checkpoint, planner=args.planner or None)
+    except (CheckpointError, ValueError) as err:
+        sys.exit(f"error: {err}")
     env = make_env_from_config(dict(cfg["env"]))
     if not is_bin_packing(env):
         sys.exit(f"error: {args.checkpoint} plays {cfg['env']['id']}, not bin packing")

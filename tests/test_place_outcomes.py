@@ -77,3 +77,12 @@ def test_planner_settings_are_read_as_numbers_and_flags():
     args = bench.parse_args(["c.pt", "--planner", "uncertainty_penalty=0.25", "name=tree", "depth=2",
                              "empty_picks_last=true"])
     assert args.planner == {"uncertainty_penalty": 0.25, "name": "tree", "depth": 2, "empty_picks_last": True}
+
+
+def test_place_outcomes_refuses_a_missing_checkpoint_in_one_line(tmp_path, capsys):
+    bench = load_benchmark("place_outcomes")
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main([str(tmp_path / "nowhere" / "checkpoint.pt"), "--episodes", "1"])
+    message = str(exit_info.value)
+    assert message.startswith("error: ") and "nowhere" in message and "\n" not in message
+    assert not any(tmp_path.iterdir())  # nothing written
