@@ -237,7 +237,16 @@ def train(cfg: DictConfig) -> dict:
                                desc="train (wall-clock budget)", unit="min", enabled=bool(s.progress),
                                bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} min [{elapsed}<{remaining}{postfix}]")
         rate_t, rate_steps, rate_updates = time.perf_counter(), counters["env_steps"], agent.updates
-        for step in collected_steps(collector):  # one transition at a time; worker weights refreshed per batch
+
+        def budget_spent() -> bool:
+            return counters["episodes"] >= int(s.total_episodes) or (
+                s.max_wall_clock_s is not None and time.perf_counter() - start >= float(s.max_wall_clock_s))
+
+        # a run stopped after its last checkpoint (in its final evaluation) resumes to that evaluation, no further episode
+        spent = budget_spent()
+        if spent:
+            log.info(f"the budget was spent at {counters['episodes']} episodes: final evaluation only")
+        for step in () if spent else collected_steps(collector):  # one transition at a time; worker weights refreshed per batch
             episode = episodes.add(step)
             counters["env_steps"] += 1
             episode_over = episode is not None
@@ -266,8 +275,7 @@ def train(cfg: DictConfig) -> dict:
                 next_eval += int(s.eval_every)
             if not episode_over:
                 continue
-            wall_over = s.max_wall_clock_s is not None and time.perf_counter() - start >= float(s.max_wall_clock_s)
-            finished = counters["episodes"] >= int(s.total_episodes) or wall_over
+            finished = budget_spent()
             if agent.updates >= next_checkpoint or stop.requested or finished:
                 with stop.saving():
                     save()

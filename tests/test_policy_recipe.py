@@ -191,6 +191,32 @@ def test_a_killed_run_resumes_to_the_same_weights_and_curve(smoke_run, tmp_path)
 
 
 @pytest.mark.slow
+def test_a_run_stopped_in_its_final_evaluation_resumes_to_that_evaluation_only(smoke_run, tmp_path):
+    """The last checkpoint is written when the budget is spent, before the final evaluation; a run killed during that
+    evaluation resumes to it without collecting or updating any further (it once ran one more episode)."""
+    import shutil
+
+    import torch
+
+    from ldm_rl.run.checkpoint import load_checkpoint
+
+    out, _ = smoke_run
+    run_dir = tmp_path / "run"
+    shutil.copytree(out, run_dir)
+    (run_dir / "final_metrics.json").unlink()
+    resumed = run("train_policy.py", "resume=true", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    a = load_checkpoint(out / "checkpoint.pt").state
+    b = load_checkpoint(run_dir / "checkpoint.pt").state
+    assert a["counters"] == b["counters"]
+    assert all(torch.equal(a["agent"][k], b["agent"][k]) for k in a["agent"])
+    first = json.loads((out / "final_metrics.json").read_text())
+    again = json.loads((run_dir / "final_metrics.json").read_text())
+    assert (again["episodes"], again["updates"]) == (first["episodes"], first["updates"])
+    assert "final evaluation only" in (run_dir / "train_policy.log").read_text()
+
+
+@pytest.mark.slow
 def test_sigterm_saves_and_exits_with_one_line(tmp_path):
     """A wall-clock-bound run: progress in minutes of its budget, the first signal says what the run waits
     for, the stop line names the budget, and the folder then refuses a fresh start naming the episode, and a
