@@ -12,6 +12,12 @@ real top more than 1 cm above the predicted), and among the N candidates the pla
 to put the block into the bin (more than ``--min-volume`` m³ added inside it): the rank correlation of V with their
 predicted pile tops (negative: V prefers the lower piles) and how often the chosen one's predicted top is more than
 2 mm above the lowest of them. A measurement of decisions, not of time; run by hand (docs/policy.md, "Bin packing").
+
+Two diagnostics change the place decisions (not planners to train with; the picks stay with the planner):
+``--choose lowest-top`` takes, among the candidates the world model predicts to enter the bin, the one with the lowest
+predicted pile top instead of V's best (V still decides where none enters): how low a V that read the pile off the
+predicted heightmap could keep it with these candidates and this world model. ``--choose q-first`` takes Q's first
+proposal (its argmax under the greedy ``argmax`` proposal): the place Q alone would choose.
 """
 
 from __future__ import annotations
@@ -33,6 +39,14 @@ def tilt_degrees(rotation: np.ndarray) -> np.ndarray:
     ``[..., 3, 3]`` (columns: the body's axes in world coordinates); 0 for a block resting on any face."""
     cos = np.abs(rotation[..., 2, :]).max(-1)
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def yaw_off_axes(rotation: np.ndarray, frame_yaw: float) -> np.ndarray:
+    """Degrees in [0, 45] between a resting block's sides and a frame's axes (yaw ``frame_yaw`` rad), for rotation
+    matrices ``[..., 3, 3]``: the body axis nearest the horizontal plane, its heading modulo a quarter turn."""
+    horizontal = np.take_along_axis(rotation, np.abs(rotation[..., 2:3, :]).argmin(-1)[..., None, :], -1)[..., 0]
+    heading = np.degrees(np.arctan2(horizontal[..., 1], horizontal[..., 0]) - frame_yaw) % 90.0
+    return np.minimum(heading, 90.0 - heading)
 
 
 def lying_height(half_extents) -> float:
@@ -78,13 +92,15 @@ def block_states(task) -> dict[int, dict]:
         position, quaternion = task.sim.pose(obj.body)
         rotation = np.array(pb.getMatrixFromQuaternion(list(quaternion))).reshape(3, 3)
         states[obj.body] = {"in_bin": bool(task.bin.contains(position)), "tilt": float(tilt_degrees(rotation)),
+                            "yaw_off": float(yaw_off_axes(rotation, task.bin.yaw)),
                             "height": float(high[2] - low[2]), "lying": lying_height(obj.half_extents)}
     return states
 
 
-def place_rows(snapshots: list[dict], tilt: float) -> list[dict]:
+def place_rows(snapshots: list[dict], tilt: float, yaw: float = 10.0) -> list[dict]:
     """One row per place into the bin from the per-decision ``snapshots`` (``held``: the held body or None,
-    ``blocks``: :func:`block_states`, plus the one after the last decision)."""
+    ``blocks``: :func:`block_states`, plus the one after the last decision); ``turned``: the block rests level
+    (not ``tilt``-ed) with its sides more than ``yaw`` degrees off the bin's walls."""
     rows = []
     for before, after in zip(snapshots[:-1], snapshots[1:]):
         body = before["held"]
@@ -92,7 +108,8 @@ def place_rows(snapshots: list[dict], tilt: float) -> list[dict]:
             continue
         rest = after["blocks"][body]
         rows.append({"tilted": rest["tilt"] > tilt, "raised": rest["height"] > rest["lying"] + RAISED_SLACK,
-                     "tilted_in_hand": before["blocks"][body]["tilt"] > tilt, "step": before["step"]})
+                     "tilted_in_hand": before["blocks"][body]["tilt"] > tilt, "step": before["step"],
+                     "turned": rest["tilt"] <= tilt and rest["yaw_off"] > yaw})
     return rows
 
 
@@ -148,6 +165,39 @@ def decision_rows(rollout, planner, interior: torch.Tensor, min_volume: float, r
     return rows
 
 
+def choose_lowest_top(planner, task, min_volume: float) -> None:
+    """Make ``planner``'s place decisions by the lowest predicted pile top among the candidates predicted to enter
+    ``task``'s bin (more than ``min_volume`` m^3 added inside it); picks, and places where none enters, keep its own
+    scores. Replaces the instance's ``score`` (the diagnostic of ``--choose lowest-top``)."""
+    score, resolution = planner.score, task.workspace.resolution
+
+    def lowest_top(heightmap, in_hand, holding, candidates, penalty, **options):
+        scores, result = score(heightmap, in_hand, holding, candidates, penalty, **{**options, "with_states": True})
+        interior = torch.as_tensor(bin_interior(task))  # the bin moves with each scene
+        predicted = result.next_heightmap[:, :, 0][..., interior]  # [B, N, P] m
+        added = (predicted - heightmap[:, 0][:, interior][:, None]).clamp(min=0).sum(-1) * resolution ** 2
+        entering = added > min_volume  # [B, N]
+        tops = torch.where(entering, -predicted.amax(-1), torch.full_like(scores, -math.inf))
+        use = holding.reshape(-1, 1).bool() & entering.any(-1, keepdim=True)
+        return torch.where(use, tops, scores), result
+
+    planner.score = lowest_top
+
+
+def choose_q_first(planner) -> None:
+    """Make ``planner``'s place decisions take its first candidate (Q's argmax under the ``argmax`` proposal); picks
+    keep its own scores. Replaces the instance's ``score`` (the diagnostic of ``--choose q-first``)."""
+    score = planner.score
+
+    def q_first(heightmap, in_hand, holding, candidates, penalty, **options):
+        scores, result = score(heightmap, in_hand, holding, candidates, penalty, **options)
+        first = torch.full_like(scores, -math.inf)
+        first[:, 0] = 0.0
+        return torch.where(holding.reshape(-1, 1).bool(), first, scores), result
+
+    planner.score = q_first
+
+
 def play(env, task, policy, episodes: int, seed: int, tilt: float, on_episode=None) -> tuple[list[dict], list[float]]:
     """Greedy episodes on the held-out scenes of ``seed``: the place rows and each packed episode's pile top (m)."""
     from ldm_rl.envs.tasks.bin_packing import pile_top_from_reward
@@ -172,9 +222,10 @@ def summary(name: str, places: list[dict], tops: list[float], episodes: int) -> 
     tilted = np.mean([p["tilted"] for p in places]) if places else float("nan")
     raised = np.mean([p["raised"] for p in places]) if places else float("nan")
     in_hand = np.mean([p["tilted_in_hand"] for p in places]) if places else float("nan")
+    turned = np.mean([p["turned"] for p in places]) if places else float("nan")
     top = f"{100 * np.mean(tops):.1f} cm" if tops else "-"
     return (f"| {name} | {len(tops)} / {episodes} | {top} | {len(places)} | {100 * tilted:.0f} % | {100 * raised:.0f} % "
-            f"| {100 * in_hand:.0f} % |")
+            f"| {100 * in_hand:.0f} % | {100 * turned:.0f} % |")
 
 
 def parse_args(argv=None):
@@ -187,6 +238,9 @@ def parse_args(argv=None):
     parser.add_argument("--tilt", type=float, default=10.0, help="degrees off the nearest face-down pose: tilted")
     parser.add_argument("--min-volume", type=float, default=1.5e-5,
                         help="m^3 a candidate must add inside the bin to count as entering it (half a half cube)")
+    parser.add_argument("--choose", choices=("value", "lowest-top", "q-first"), default="value",
+                        help="how the places are chosen: by the planner (value) or, diagnostics, by the lowest "
+                             "predicted pile top among the candidates predicted to enter the bin, or Q's argmax")
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
@@ -231,6 +285,15 @@ def main(argv=None) -> None:
         sys.exit(f"error: {args.checkpoint} plays {cfg['env']['id']}, not bin packing")
     task = unwrap(env)
     planner = agent.greedy_policy if agent.name == "ldm" else None
+    if args.choose != "value" and planner is None:
+        sys.exit(f"error: --choose {args.choose} needs an LDM agent's checkpoint, {args.checkpoint} is {agent.name}'s")
+    if args.choose == "lowest-top":
+        choose_lowest_top(planner, task, args.min_volume)
+    elif args.choose == "q-first":
+        if planner.greedy_proposal != "argmax":
+            sys.exit(f"error: --choose q-first needs the greedy proposal 'argmax' (Q's argmax first), "
+                     f"the checkpoint's planner has {planner.greedy_proposal!r}")
+        choose_q_first(planner)
     decisions: list[dict] = []
 
     def read_decisions(index, rollout):
@@ -242,9 +305,12 @@ def main(argv=None) -> None:
                                         read_decisions if planner is not None else None)
         expert_places, expert_tops = play(env, task, expert_policy(env), args.episodes, args.seed, args.tilt)
     print(f"{args.checkpoint}, {args.episodes} held-out scenes (seed {args.seed})"
-          + (f", planner {args.planner}" if args.planner else ""))
-    print("| who | packed | mean pile top of the packs | places into the bin | resting tilted | raised | tilted in the hand |")
-    print("|---|---|---|---|---|---|---|")
+          + (f", planner {args.planner}" if args.planner else "")
+          + {"value": "", "lowest-top": ", places chosen by the lowest predicted pile top",
+             "q-first": ", places at Q's argmax"}[args.choose])
+    print("| who | packed | mean pile top of the packs | places into the bin | resting tilted | raised | tilted in the hand "
+          "| level but turned > 10° off the walls |")
+    print("|---|---|---|---|---|---|---|---|")
     print(summary(f"{agent.name} agent", agent_places, agent_tops, args.episodes))
     print(summary("scripted expert", expert_places, expert_tops, args.episodes))
     if decisions:

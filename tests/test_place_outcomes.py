@@ -27,6 +27,16 @@ def test_tilt_is_the_angle_to_the_nearest_face_down_pose():
     assert bench.tilt_degrees(stacked) == pytest.approx([0.0, 20.0], abs=1e-4)
 
 
+def test_yaw_off_axes_folds_a_resting_blocks_heading_onto_the_frames_walls():
+    bench = load_benchmark("place_outcomes")
+    assert bench.yaw_off_axes(rotation("z", 30.0), 0.0) == pytest.approx(30.0)
+    assert bench.yaw_off_axes(rotation("z", 30.0), math.radians(30.0)) == pytest.approx(0.0, abs=1e-6)
+    assert bench.yaw_off_axes(rotation("z", 100.0), 0.0) == pytest.approx(10.0)  # a quarter turn is the same walls
+    assert bench.yaw_off_axes(rotation("z", -50.0), 0.0) == pytest.approx(40.0)
+    on_its_side = rotation("z", 20.0) @ rotation("x", 90.0)  # body z now horizontal: still the heading that counts
+    assert bench.yaw_off_axes(on_its_side, 0.0) == pytest.approx(20.0)
+
+
 def test_rank_correlation_is_spearmans_with_ties_and_nan_for_constants():
     bench = load_benchmark("place_outcomes")
     x = np.array([0.05, 0.02, 0.09, 0.04])
@@ -39,8 +49,8 @@ def test_rank_correlation_is_spearmans_with_ties_and_nan_for_constants():
     assert bench.rank_correlation(np.array([1.0, 1.0, 3.0]), np.array([1.0, 2.0, 3.0])) == pytest.approx(expect)
 
 
-def block(in_bin=True, tilt=0.0, height=0.04, lying=0.04):
-    return {"in_bin": in_bin, "tilt": tilt, "height": height, "lying": lying}
+def block(in_bin=True, tilt=0.0, height=0.04, lying=0.04, yaw_off=0.0):
+    return {"in_bin": in_bin, "tilt": tilt, "height": height, "lying": lying, "yaw_off": yaw_off}
 
 
 def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
@@ -53,11 +63,13 @@ def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
         {"held": None, "step": 4, "blocks": {1: block(tilt=25.0, height=0.09), 2: block(in_bin=False, height=0.043)}},
     ]
     rows = bench.place_rows(snapshots, tilt=10.0)
-    assert rows == [{"tilted": True, "raised": True, "tilted_in_hand": True, "step": 1}]
-    snapshots[2]["blocks"][1] = block(tilt=5.0, height=0.045)  # level, within the 6 mm slack
+    assert rows == [{"tilted": True, "raised": True, "tilted_in_hand": True, "step": 1, "turned": False}]
+    snapshots[2]["blocks"][1] = block(tilt=5.0, height=0.045, yaw_off=8.0)  # level, within the 6 mm slack
     snapshots[1]["blocks"][1] = block(in_bin=False, tilt=5.0)
     assert bench.place_rows(snapshots, tilt=10.0) == [
-        {"tilted": False, "raised": False, "tilted_in_hand": False, "step": 1}]
+        {"tilted": False, "raised": False, "tilted_in_hand": False, "step": 1, "turned": False}]
+    snapshots[2]["blocks"][1]["yaw_off"] = 30.0  # level but turned against the walls
+    assert bench.place_rows(snapshots, tilt=10.0)[0]["turned"]
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -86,3 +98,39 @@ def test_place_outcomes_refuses_a_missing_checkpoint_in_one_line(tmp_path, capsy
     message = str(exit_info.value)
     assert message.startswith("error: ") and "nowhere" in message and "\n" not in message
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_lowest_top_choice_takes_the_lowest_entering_candidate_and_leaves_picks_to_the_planner():
+    import gymnasium as gym
+    import torch
+    from types import SimpleNamespace
+
+    import ldm_rl.envs  # noqa: F401  (registers the ids)
+
+    bench = load_benchmark("place_outcomes")
+    task = gym.make("ldm_rl/BinPacking-v0").unwrapped
+    try:
+        task.reset(seed=3)
+        inside = torch.as_tensor(bench.bin_interior(task))
+        before = torch.zeros(2, 1, *inside.shape)  # two states: the first holds a block, the second does not
+        after = before[:, None].repeat(1, 4, 1, 1, 1)  # [B, N=4, 1, H, W]
+        rows, cols = inside.nonzero().T
+        centre = (rows[len(rows) // 2], cols[len(cols) // 2])
+        after[:, 0, 0][:, centre[0], centre[1]] = 0.12          # enters the bin, the tallest pile
+        after[:, 1, 0][:, rows[:40], cols[:40]] = 0.05          # enters, the lowest pile
+        after[:, 2, 0][:, centre[0], centre[1]] = 0.08          # a single pixel: too little added to count as entering
+        after[:, 3, 0][:, ~inside] = 0.05                        # lands outside the bin
+        planner_scores = torch.tensor([[0.0, 0.1, 0.9, 0.5], [0.0, 0.1, 0.9, 0.5]])
+        planner = SimpleNamespace(score=lambda *a, **o: (planner_scores, SimpleNamespace(next_heightmap=after)))
+        bench.choose_lowest_top(planner, task, min_volume=1.5e-5)
+        after[:, 0, 0][:, rows[-40:], cols[-40:]] = 0.12
+        holding = torch.tensor([1.0, 0.0])
+        scores, _ = planner.score(before, None, holding, None, 0.0)
+        assert scores[0].argmax() == 1 and scores[0, :2].tolist() == pytest.approx([-0.12, -0.05])
+        assert scores[0, 2:].isinf().all()
+        assert torch.equal(scores[1], planner_scores[1])  # a pick: the planner's own scores
+        after[:, :2] = 0.0  # nothing enters the bin: the planner's own scores again
+        scores, _ = planner.score(before, None, holding, None, 0.0)
+        assert torch.equal(scores, planner_scores)
+    finally:
+        task.close()
