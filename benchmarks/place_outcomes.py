@@ -17,7 +17,11 @@ Two diagnostics change the place decisions (not planners to train with; the pick
 ``--choose lowest-top`` takes, among the candidates the world model predicts to enter the bin, the one with the lowest
 predicted pile top instead of V's best (V still decides where none enters): how low a V that read the pile off the
 predicted heightmap could keep it with these candidates and this world model. ``--choose q-first`` takes Q's first
-proposal (its argmax under the greedy ``argmax`` proposal): the place Q alone would choose.
+proposal (its argmax under the greedy ``argmax`` proposal): the place Q alone would choose; ``nearest-expert`` the
+candidate nearest the noiseless scripted expert's place for the same state (pixels plus ``ROTATION_PX`` per rotation
+bin apart), and reports how near the nearest was: whether the candidates hold the expert's place. ``--expert-does places``
+(or ``picks``) splits the work: the scripted expert takes those primitives, the checkpoint's policy the others, which
+tells the part the pick order plays from the part the places play.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import torch
 RAISED_SLACK = 0.006  # m
 MISSED_RISE = 0.01  # m
 HIGHER_CHOICE = 0.002  # m
+ROTATION_PX = 10.0  # pixels a rotation bin apart counts for in --choose nearest-expert
 
 
 def tilt_degrees(rotation: np.ndarray) -> np.ndarray:
@@ -198,6 +203,46 @@ def choose_q_first(planner) -> None:
     planner.score = q_first
 
 
+def choose_nearest_expert(planner, task) -> list[tuple[float, int]]:
+    """Make ``planner``'s place decisions take the candidate nearest ``task``'s noiseless expert place (pixel distance
+    plus ``ROTATION_PX`` per rotation bin apart); picks keep its own scores. Replaces the instance's ``score`` (the
+    diagnostic of ``--choose nearest-expert``); returns the list it fills per place decision with the nearest
+    candidate's (pixel distance, rotation bins apart)."""
+    from ldm_rl.envs.base import ExpertNoise
+    from ldm_rl.geometry import circular_bin_distance
+
+    score, nearest, noiseless = planner.score, [], ExpertNoise()
+
+    def nearest_expert(heightmap, in_hand, holding, candidates, penalty, **options):
+        scores, result = score(heightmap, in_hand, holding, candidates, penalty, **options)
+        if not bool(holding.reshape(-1)[0]):
+            return scores, result
+        expert = torch.as_tensor(task.expert_action(noiseless))
+        pixels = (candidates[0, :, :2] - expert[:2]).float().norm(dim=-1)  # [N]
+        turns = circular_bin_distance(candidates[0, :, 2], expert[2], task.num_rotations)
+        distance = pixels + ROTATION_PX * turns
+        best = int(distance.argmin())
+        nearest.append((float(pixels[best]), int(turns[best])))
+        chosen = torch.full_like(scores, -math.inf)
+        chosen[0, best] = 0.0
+        return chosen, result
+
+    planner.score = nearest_expert
+    return nearest
+
+
+def split_policy(agent_policy, expert, expert_does: str):
+    """A policy writing only ``"action"``: ``expert``'s at its primitives (``expert_does``: ``"places"``, the
+    decisions with a block in the hand, or ``"picks"``), ``agent_policy``'s at the others."""
+    def policy(tensordict):
+        holding = bool(tensordict.get("holding").reshape(-1)[0])
+        chooser = expert if holding == (expert_does == "places") else agent_policy
+        tensordict.set("action", chooser(tensordict.clone()).get("action"))
+        return tensordict
+
+    return policy
+
+
 def play(env, task, policy, episodes: int, seed: int, tilt: float, on_episode=None) -> tuple[list[dict], list[float]]:
     """Greedy episodes on the held-out scenes of ``seed``: the place rows and each packed episode's pile top (m)."""
     from ldm_rl.envs.tasks.bin_packing import pile_top_from_reward
@@ -238,10 +283,15 @@ def parse_args(argv=None):
     parser.add_argument("--tilt", type=float, default=10.0, help="degrees off the nearest face-down pose: tilted")
     parser.add_argument("--min-volume", type=float, default=1.5e-5,
                         help="m^3 a candidate must add inside the bin to count as entering it (half a half cube)")
-    parser.add_argument("--choose", choices=("value", "lowest-top", "q-first"), default="value",
+    parser.add_argument("--choose", choices=("value", "lowest-top", "q-first", "nearest-expert"), default="value",
                         help="how the places are chosen: by the planner (value) or, diagnostics, by the lowest "
-                             "predicted pile top among the candidates predicted to enter the bin, or Q's argmax")
+                             "predicted pile top among the candidates predicted to enter the bin, Q's argmax, or the "
+                             "candidate nearest the scripted expert's place")
+    parser.add_argument("--expert-does", choices=("places", "picks"), default=None,
+                        help="the scripted expert takes these primitives, the checkpoint's policy the others")
     args = parser.parse_args(argv)
+    if args.expert_does and args.choose != "value":
+        parser.error(f"--expert-does {args.expert_does} leaves no place decision to --choose {args.choose}: give one")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if not 0 < args.tilt < 90:
@@ -294,25 +344,37 @@ def main(argv=None) -> None:
             sys.exit(f"error: --choose q-first needs the greedy proposal 'argmax' (Q's argmax first), "
                      f"the checkpoint's planner has {planner.greedy_proposal!r}")
         choose_q_first(planner)
+    nearest = choose_nearest_expert(planner, task) if args.choose == "nearest-expert" else []
     decisions: list[dict] = []
 
     def read_decisions(index, rollout):
         interior = torch.as_tensor(bin_interior(task))
         decisions.extend(decision_rows(rollout, planner, interior, args.min_volume, task.workspace.resolution))
 
+    policy = agent.evaluation_policy()
+    if args.expert_does:
+        policy, planner = split_policy(policy, expert_policy(env), args.expert_does), None
     with torch.no_grad():
-        agent_places, agent_tops = play(env, task, agent.evaluation_policy(), args.episodes, args.seed, args.tilt,
+        agent_places, agent_tops = play(env, task, policy, args.episodes, args.seed, args.tilt,
                                         read_decisions if planner is not None else None)
         expert_places, expert_tops = play(env, task, expert_policy(env), args.episodes, args.seed, args.tilt)
     print(f"{args.checkpoint}, {args.episodes} held-out scenes (seed {args.seed})"
           + (f", planner {args.planner}" if args.planner else "")
           + {"value": "", "lowest-top": ", places chosen by the lowest predicted pile top",
-             "q-first": ", places at Q's argmax"}[args.choose])
+             "q-first": ", places at Q's argmax", "nearest-expert": ", places at the candidate nearest the expert's"}[args.choose]
+          + (f", the scripted expert's {args.expert_does}" if args.expert_does else ""))
     print("| who | packed | mean pile top of the packs | places into the bin | resting tilted | raised | tilted in the hand "
           "| level but turned > 10° off the walls |")
     print("|---|---|---|---|---|---|---|---|")
-    print(summary(f"{agent.name} agent", agent_places, agent_tops, args.episodes))
+    who = f"{agent.name} agent" + (f", the expert's {args.expert_does}" if args.expert_does else "")
+    print(summary(who, agent_places, agent_tops, args.episodes))
     print(summary("scripted expert", expert_places, expert_tops, args.episodes))
+    if nearest:
+        pixels, turns = np.array(nearest).T
+        print(f"\nthe candidate nearest the expert's place, over {len(nearest)} place decisions: {np.median(pixels):.1f} px "
+              f"away (median; {np.mean(pixels <= 2):.0%} within 2 px, {np.mean(pixels <= 5):.0%} within 5 px), "
+              f"at the expert's rotation in {np.mean(turns == 0):.0%}, within 2 px and at its rotation in "
+              f"{np.mean((pixels <= 2) & (turns == 0)):.0%}")
     if decisions:
         real = np.array([d["real_top"] for d in decisions])
         predicted = np.array([d["predicted_top"] for d in decisions])

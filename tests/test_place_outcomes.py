@@ -134,3 +134,58 @@ def test_lowest_top_choice_takes_the_lowest_entering_candidate_and_leaves_picks_
         assert torch.equal(scores, planner_scores)
     finally:
         task.close()
+
+
+@pytest.mark.parametrize("expert_does", ["places", "picks"])
+def test_split_policy_gives_the_expert_its_primitives_and_writes_only_the_action(expert_does):
+    import torch
+    from tensordict import TensorDict
+
+    bench = load_benchmark("place_outcomes")
+
+    def agent(td):
+        return td.set("action", torch.tensor([1, 1, 1])).set("candidate_actions", torch.zeros(10, 3))
+
+    def expert(td):
+        return td.set("action", torch.tensor([2, 2, 2]))
+
+    policy = bench.split_policy(agent, expert, expert_does)
+    for holding in (False, True):
+        td = policy(TensorDict({"holding": torch.tensor([holding])}, []))
+        by_expert = holding == (expert_does == "places")
+        assert td["action"].tolist() == ([2, 2, 2] if by_expert else [1, 1, 1])
+        assert set(td.keys()) == {"holding", "action"}
+
+
+def test_expert_does_leaves_no_place_to_choose_in_one_line(capsys):
+    bench = load_benchmark("place_outcomes")
+    with pytest.raises(SystemExit):
+        bench.parse_args(["c.pt", "--expert-does", "places", "--choose", "q-first"])
+    assert "--expert-does places leaves no place decision to --choose q-first" in capsys.readouterr().err
+
+
+def test_nearest_expert_choice_takes_the_candidate_nearest_the_experts_action_rotations_counted():
+    import gymnasium as gym
+    import torch
+    from types import SimpleNamespace
+
+    import ldm_rl.envs  # noqa: F401  (registers the ids)
+    from ldm_rl.envs.base import ExpertNoise
+
+    bench = load_benchmark("place_outcomes")
+    task = gym.make("ldm_rl/BinPacking-v0").unwrapped
+    try:
+        task.reset(seed=5)
+        row, col, rot = (int(v) for v in task.expert_action(ExpertNoise()))
+        other = (rot + task.num_rotations // 2) % task.num_rotations
+        candidates = torch.tensor([[[row + 12, col, rot], [row, col + 1, other], [row + 3, col - 4, rot], [row, col, other]]])
+        planner_scores = torch.tensor([[0.9, 0.5, 0.1, 0.7]])
+        planner = SimpleNamespace(score=lambda *a, **o: (planner_scores, None))
+        nearest = bench.choose_nearest_expert(planner, task)
+        scores, _ = planner.score(None, None, torch.tensor([1.0]), candidates, 0.0)
+        assert scores[0].argmax() == 2 and scores[0].isinf().sum() == 3  # 5 px at its rotation beats 1 px turned
+        assert nearest == [(5.0, 0)]
+        scores, _ = planner.score(None, None, torch.tensor([0.0]), candidates, 0.0)  # a pick: the planner's scores
+        assert torch.equal(scores, planner_scores) and len(nearest) == 1
+    finally:
+        task.close()
