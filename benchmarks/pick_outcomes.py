@@ -32,6 +32,9 @@ the grasp's pose beyond its TD targets (``--margin-temperature τ``: the soft ma
 ``agent.expert_margin_temperature``). It also ranks the expert's pick in Q's whole map on the last 100 expert pick
 states: first, in the top 10, the median count of entries above it and its median gap to the best. ``--frame-pad P`` reads the same weights in frames padded by P px
 (``agent.q_frame_pad``: every pixel proposable at every rotation).
+``--places`` reads the expert's *places* instead (an LDM agent's run, nothing else): the expert's place in Q's whole
+map on the last 100 expert place states (each with its in-hand image), before and after ``--margin-steps`` on the
+other expert places: whether Q has learnt, or can learn from the demonstrations, where the expert sets a block.
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -73,6 +76,33 @@ def load_picks(run: Path) -> dict[str, np.ndarray]:
             "height": maps[np.arange(len(picks)), pixel[:, 0], pixel[:, 1]], "heightmap": maps, "pixel": pixel,
             "action": action.numpy(), "hand_size": int(frames["in_hand"].shape[-1]),
             "num_rotations": _num_rotations(run)}
+
+
+def load_places(run: Path) -> dict[str, np.ndarray]:
+    """The places of ``run``'s newest replay (transitions from a holding hand): ``expert`` bool [P]; ``heightmap``
+    [P, H, W] and ``in_hand`` [P, h, h] float32 m before the place; ``action`` [P, 3] int64; ``holding`` True."""
+    replays = sorted(run.glob("replay-*"))
+    if not replays:
+        raise SystemExit(f"no replay-* folder in {run}: pass a training run's folder (hydra.run.dir)")
+    meta = json.loads((replays[-1] / "frame_replay.json").read_text())
+    frames = TensorDict.load_memmap(replays[-1] / "frames")
+    n = int(meta["num_frames"])
+    holding = frames["holding"][:n].reshape(-1).bool()
+    places = torch.nonzero(~frames["is_last"][:n].reshape(-1).bool()[:-1] & holding[:-1]).squeeze(1)
+
+    def heights(key):
+        maps = geometry.classes_to_heights(frames[key][places], meta["max_height"], meta["num_classes"])
+        return maps.reshape(len(places), *maps.shape[-2:]).numpy()
+
+    return {"expert": frames["is_expert"][places].reshape(-1).bool().numpy(), "heightmap": heights("heightmap"),
+            "in_hand": heights("in_hand"), "action": frames["action"][places].long().numpy(), "holding": True}
+
+
+def _hand(p: dict, rows: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``in_hand`` ``[B, 1, h, h]`` and ``holding`` ``[B, 1]`` inputs of Q for ``rows`` of picks or places."""
+    if p.get("holding"):
+        return torch.from_numpy(p["in_hand"][rows]).unsqueeze(1), torch.ones(len(rows), 1, dtype=torch.bool)
+    return torch.zeros(len(rows), 1, p["hand_size"], p["hand_size"]), torch.zeros(len(rows), 1, dtype=torch.bool)
 
 
 def _num_rotations(run: Path) -> int:
@@ -308,29 +338,33 @@ def expert_ranks(q_maps: torch.Tensor, action: torch.Tensor) -> tuple[np.ndarray
 
 
 def rank_reading(agent, p: dict, rows: np.ndarray, batch: int = 10) -> str:
-    """The expert's pick on ``rows`` in the planner's Q map: proposable picks, first / in the top 10, median entries
-    above it and median gap to the map's best (Q's fitted units)."""
+    """The expert's pick (or place) on ``rows`` in the planner's Q map: proposable ones, first / in the top 10, median
+    entries above it and median gap to the map's best (Q's fitted units)."""
     q = agent.planner.q_network.eval()
-    ranks, gaps = [], []
+    ranks, gaps, pixels, turned = [], [], [], []
     with torch.no_grad():
         for start in range(0, len(rows), batch):
             r = rows[start:start + batch]
-            maps = q(torch.from_numpy(p["heightmap"][r]).unsqueeze(1), torch.zeros(len(r), 1, p["hand_size"], p["hand_size"]),
-                     torch.zeros(len(r), 1, dtype=torch.bool)).float()
-            above, gap = expert_ranks(maps, torch.from_numpy(p["action"][r]).reshape(-1, 3))
+            maps = q(torch.from_numpy(p["heightmap"][r]).unsqueeze(1), *_hand(p, r)).float()
+            action = torch.from_numpy(p["action"][r]).reshape(-1, 3).long()
+            above, gap = expert_ranks(maps, action)
             ranks.append(above)
             gaps.append(gap)
-    ranks, gaps = np.concatenate(ranks), np.concatenate(gaps)
+            best = geometry.flat_to_action(maps.flatten(1).argmax(1), *maps.shape[-2:])  # [B, 3] Q's argmax
+            pixels.append((best[:, :2] - action[:, :2]).float().norm(dim=-1).numpy())
+            turned.append((best[:, 2] != action[:, 2]).numpy())
+    ranks, gaps, pixels, turned = (np.concatenate(v) for v in (ranks, gaps, pixels, turned))
     if not len(ranks):
         return f"0 of {len(rows)} proposable"
     return (f"{len(ranks)} of {len(rows)} proposable; first {int((ranks == 0).sum())}, top 10 {int((ranks < 10).sum())}; "
-            f"median {np.median(ranks):.0f} entries above it, {np.median(gaps):.3f} below the best")
+            f"median {np.median(ranks):.0f} entries above it, {np.median(gaps):.3f} below the best; Q's argmax a median "
+            f"{np.median(pixels):.1f} px from it, within 2 px at its rotation in {int(((pixels <= 2) & ~turned).sum())}")
 
 
 def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: float = 0.1, seed: int = 0,
                temperature: float = 0.0) -> list[float]:
-    """Fit ``agent``'s online Q on the picks ``rows`` with the expert margin term alone (4 picks per step; soft max
-    at ``temperature`` > 0); returns the term's value every 50 steps."""
+    """Fit ``agent``'s online Q on the picks (or places) ``rows`` with the expert margin term alone (4 per step; soft
+    max at ``temperature`` > 0); returns the term's value every 50 steps."""
     from ldm_rl.objectives import SpatialDQNLoss
 
     loss = SpatialDQNLoss(agent.planner.q_network, expert_margin_weight=1.0, expert_margin=margin, expert_margin_rows=4,
@@ -339,9 +373,9 @@ def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: 
     rng, trace = np.random.default_rng(seed), []
     for step in range(steps):
         r = rng.choice(rows, 4, replace=False)
-        data = TensorDict({"heightmap": torch.from_numpy(p["heightmap"][r]).unsqueeze(1),
-                           "in_hand": torch.zeros(4, 1, p["hand_size"], p["hand_size"]),
-                           "holding": torch.zeros(4, 1, dtype=torch.bool), "action": torch.from_numpy(p["action"][r]),
+        in_hand, holding = _hand(p, r)
+        data = TensorDict({"heightmap": torch.from_numpy(p["heightmap"][r]).unsqueeze(1), "in_hand": in_hand,
+                           "holding": holding, "action": torch.from_numpy(p["action"][r]),
                            "is_expert": torch.ones(4, 1, dtype=torch.bool)}, batch_size=[4])
         loss.q_network.train()
         optimiser.zero_grad()
@@ -405,6 +439,29 @@ def proposals_report(run: Path, surface: float, max_region: int, opening: float,
         print(f"  {when}: {line}")
 
 
+def places_report(run: Path, margin_steps: int, margin_lr: float, margin_temperature: float = 0.0,
+                  weights: str = "checkpoint.pt") -> None:
+    """The expert's place in ``run``'s Q map on its last 100 expert place states, before and after ``margin_steps``."""
+    from ldm_rl.agents import load_agent
+
+    p = load_places(run)
+    agent, _ = load_agent(run / weights)
+    if agent.name != "ldm":
+        raise SystemExit(f"--places reads an LDM agent's Q; {run}/{weights} holds agent {agent.name!r}")
+    expert = np.nonzero(p["expert"])[0]
+    if len(expert) <= 100 + 4 * (margin_steps > 0):
+        raise SystemExit(f"{run}'s replay has {len(expert)} expert places: --places needs more than 100")
+    ranks = [("as trained", rank_reading(agent, p, expert[-100:]))]
+    if margin_steps:
+        trace = fit_margin(agent, p, expert[:-100], margin_steps, margin_lr, temperature=margin_temperature)
+        print(f"the margin term over {margin_steps} steps on the other {len(expert) - 100} expert places: "
+              + " → ".join(f"{t:.3f}" for t in trace))
+        ranks.append((f"after {margin_steps} margin steps", rank_reading(agent, p, expert[-100:])))
+    print(f"\n{run}: the expert's place in Q's whole map, last 100 expert place states ({weights}):")
+    for when, line in ranks:
+        print(f"  {when}: {line}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("runs", nargs="+", type=Path, help="training run folders (each with a replay-* folder)")
@@ -418,7 +475,9 @@ def main() -> None:
     parser.add_argument("--proposals", action="store_true",
                         help="an LDM agent's run: its greedy planner's pick proposals on the last expert and agent picks")
     parser.add_argument("--margin-steps", type=int, default=0,
-                        help="with --proposals: first fit Q with the expert margin term alone for this many steps")
+                        help="with --proposals or --places: first fit Q with the expert margin term alone for this many steps")
+    parser.add_argument("--places", action="store_true",
+                        help="an LDM agent's run: the expert's places in its Q map (instead of every pick reading)")
     parser.add_argument("--margin-lr", type=float, default=1e-3, help="Adam's learning rate of --margin-steps")
     parser.add_argument("--margin-temperature", type=float, default=0.0,
                         help="τ of --margin-steps' soft max (agent.expert_margin_temperature; 0 = the hard max)")
@@ -429,10 +488,12 @@ def main() -> None:
     args = parser.parse_args()
     if args.weights not in ("checkpoint.pt", "best_policy.pt"):
         parser.error(f"--weights must be checkpoint.pt or best_policy.pt (a file in the run folder), got {args.weights!r}")
-    if args.weights != "checkpoint.pt" and not args.proposals:
+    if args.weights != "checkpoint.pt" and not (args.proposals or args.places):
         parser.error(f"--weights {args.weights} names the weights --proposals reads: pass --proposals too")
-    if args.margin_steps < 0 or (args.margin_steps and not args.proposals):
-        parser.error(f"--margin-steps must be >= 0 and goes with --proposals, got {args.margin_steps}")
+    if args.margin_steps < 0 or (args.margin_steps and not (args.proposals or args.places)):
+        parser.error(f"--margin-steps must be >= 0 and goes with --proposals or --places, got {args.margin_steps}")
+    if args.places and (args.proposals or args.model):
+        parser.error("--places reads the expert's places alone: leave out --proposals and --model")
     if args.frame_pad and not args.proposals:
         parser.error(f"--frame-pad {args.frame_pad} pads the Q that --proposals reads: pass --proposals too")
     if not args.margin_lr > 0:
@@ -447,6 +508,9 @@ def main() -> None:
         parser.error(f"--opening must be a positive gap in metres (the env's gripper: 0.07), got {args.opening!r}")
     torch.set_num_threads(1)
     for run in args.runs:
+        if args.places:
+            places_report(run, args.margin_steps, args.margin_lr, args.margin_temperature, args.weights)
+            continue
         report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
         if args.proposals:
             proposals_report(run, args.surface, args.max_region, args.opening, 0.003125, args.margin_steps,

@@ -207,7 +207,7 @@ def choose_nearest_expert(planner, task) -> list[tuple[float, int]]:
     """Make ``planner``'s place decisions take the candidate nearest ``task``'s noiseless expert place (pixel distance
     plus ``ROTATION_PX`` per rotation bin apart); picks keep its own scores. Replaces the instance's ``score`` (the
     diagnostic of ``--choose nearest-expert``); returns the list it fills per place decision with the nearest
-    candidate's (pixel distance, rotation bins apart)."""
+    candidate's (pixel distance, rotation bins apart) and the fraction of Q's map entries above the expert's place."""
     from ldm_rl.envs.base import ExpertNoise
     from ldm_rl.geometry import circular_bin_distance
 
@@ -222,7 +222,9 @@ def choose_nearest_expert(planner, task) -> list[tuple[float, int]]:
         turns = circular_bin_distance(candidates[0, :, 2], expert[2], task.num_rotations)
         distance = pixels + ROTATION_PX * turns
         best = int(distance.argmin())
-        nearest.append((float(pixels[best]), int(turns[best])))
+        q_map = planner.q_network(heightmap, in_hand, holding)[0]  # [R, H, W], eval mode (inside decide)
+        above = float((q_map > q_map[expert[2], expert[0], expert[1]]).float().mean())
+        nearest.append((float(pixels[best]), int(turns[best]), above))
         chosen = torch.full_like(scores, -math.inf)
         chosen[0, best] = 0.0
         return chosen, result
@@ -370,11 +372,14 @@ def main(argv=None) -> None:
     print(summary(who, agent_places, agent_tops, args.episodes))
     print(summary("scripted expert", expert_places, expert_tops, args.episodes))
     if nearest:
-        pixels, turns = np.array(nearest).T
+        pixels, turns, above = np.array(nearest).T
         print(f"\nthe candidate nearest the expert's place, over {len(nearest)} place decisions: {np.median(pixels):.1f} px "
               f"away (median; {np.mean(pixels <= 2):.0%} within 2 px, {np.mean(pixels <= 5):.0%} within 5 px), "
               f"at the expert's rotation in {np.mean(turns == 0):.0%}, within 2 px and at its rotation in "
               f"{np.mean((pixels <= 2) & (turns == 0)):.0%}")
+        print(f"Q's map at the expert's place: {np.median(above):.2%} of the map's entries above it (median; "
+              f"{np.percentile(above, 25):.2%} / {np.percentile(above, 75):.2%} at the quartiles; Q's argmax there in "
+              f"{np.mean(above == 0):.0%})")
     if decisions:
         real = np.array([d["real_top"] for d in decisions])
         predicted = np.array([d["predicted_top"] for d in decisions])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -195,6 +196,8 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
 @pytest.mark.parametrize("argv, message", [
     (["--proposals", "--weights", "policy.pt"], "--weights must be checkpoint.pt or best_policy.pt"),
     (["--weights", "best_policy.pt"], "pass --proposals too"),
+    (["--margin-steps", "5"], "goes with --proposals or --places, got 5"),
+    (["--places", "--proposals"], "--places reads the expert's places alone"),
 ])
 def test_pick_outcomes_refuses_weights_it_cannot_read(argv, message, monkeypatch, capsys, tmp_path):
     """--weights names a file of the run folder (the final or the selected weights), and only --proposals reads it:
@@ -206,3 +209,15 @@ def test_pick_outcomes_refuses_weights_it_cannot_read(argv, message, monkeypatch
     with pytest.raises(SystemExit) as stop:
         bench.main()
     assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_pick_outcomes_feeds_q_the_hand_of_a_place_and_an_empty_hand_to_a_pick():
+    """--places reads Q with each place's in-hand image and the holding flag; the pick readings with an empty hand."""
+    bench = load_benchmark("pick_outcomes")
+    rows = np.array([2, 0])
+    in_hand = np.random.default_rng(0).random((3, 24, 24)).astype(np.float32)
+    hand, holding = bench._hand({"in_hand": in_hand, "holding": True}, rows)
+    assert hand.shape == (2, 1, 24, 24) and torch.equal(hand[:, 0], torch.from_numpy(in_hand[rows]))
+    assert holding.dtype == torch.bool and holding.all() and holding.shape == (2, 1)
+    hand, holding = bench._hand({"hand_size": 24}, rows)
+    assert hand.shape == (2, 1, 24, 24) and not hand.any() and not holding.any()

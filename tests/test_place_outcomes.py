@@ -180,11 +180,14 @@ def test_nearest_expert_choice_takes_the_candidate_nearest_the_experts_action_ro
         other = (rot + task.num_rotations // 2) % task.num_rotations
         candidates = torch.tensor([[[row + 12, col, rot], [row, col + 1, other], [row + 3, col - 4, rot], [row, col, other]]])
         planner_scores = torch.tensor([[0.9, 0.5, 0.1, 0.7]])
-        planner = SimpleNamespace(score=lambda *a, **o: (planner_scores, None))
+        q_map = torch.zeros(1, task.num_rotations, 128, 128)
+        q_map[0, rot, row, col] = 1.0
+        q_map[0, other, :2, :2] = 2.0  # four entries above the expert's place
+        planner = SimpleNamespace(score=lambda *a, **o: (planner_scores, None), q_network=lambda *a: q_map)
         nearest = bench.choose_nearest_expert(planner, task)
         scores, _ = planner.score(None, None, torch.tensor([1.0]), candidates, 0.0)
         assert scores[0].argmax() == 2 and scores[0].isinf().sum() == 3  # 5 px at its rotation beats 1 px turned
-        assert nearest == [(5.0, 0)]
+        assert nearest == [(5.0, 0, pytest.approx(4 / q_map.numel()))]
         scores, _ = planner.score(None, None, torch.tensor([0.0]), candidates, 0.0)  # a pick: the planner's scores
         assert torch.equal(scores, planner_scores) and len(nearest) == 1
     finally:
