@@ -55,10 +55,9 @@ BANDS = ((0, 2), (2, 4), (4, 7), (7, 12), (12, 10_000))
 SPAN_BANDS = ((0.0, 5.0), (5.0, 6.0), (6.0, 7.0), (7.0, 8.5), (8.5, 100.0))  # cm
 
 
-def load_picks(run: Path) -> dict[str, np.ndarray]:
-    """The picks of ``run``'s newest replay: ``expert``, ``held`` bool [P]; ``height`` m [P] at the pick
-    pixel; ``heightmap`` [P, H, W] float32 m before the pick; ``pixel`` [P, 2] int (row, col); ``action``
-    [P, 3] int64; ``hand_size`` (px of the in-hand image)."""
+def _replay_frames(run: Path) -> tuple[dict, TensorDict, torch.Tensor, torch.Tensor]:
+    """``run``'s newest replay: its meta, its frames, and ``[n]`` bool masks of the frames that start a pick and a
+    place (a transition from an empty or a holding hand)."""
     replays = sorted(run.glob("replay-*"))
     if not replays:
         raise SystemExit(f"no replay-* folder in {run}: pass a training run's folder (hydra.run.dir)")
@@ -66,13 +65,28 @@ def load_picks(run: Path) -> dict[str, np.ndarray]:
     frames = TensorDict.load_memmap(replays[-1] / "frames")
     n = int(meta["num_frames"])
     holding = frames["holding"][:n].reshape(-1).bool()
-    last = frames["is_last"][:n].reshape(-1).bool()
-    picks = torch.nonzero(~last[:-1] & ~holding[:-1]).squeeze(1)
-    maps = geometry.classes_to_heights(frames["heightmap"][picks], meta["max_height"], meta["num_classes"])
-    maps = maps.reshape(len(picks), *maps.shape[-2:]).numpy()
+    starts = ~frames["is_last"][:n].reshape(-1).bool()
+    starts[-1] = False  # the newest frame has no transition yet
+    return meta, frames, starts & ~holding, starts & holding
+
+
+def _heights(meta: dict, frames: TensorDict, key: str, rows: torch.Tensor) -> np.ndarray:
+    """Frames ``key`` (``heightmap`` or ``in_hand``, stored as classes) at ``rows`` -> ``[P, h, w]`` float32 m."""
+    maps = geometry.classes_to_heights(frames[key][rows], meta["max_height"], meta["num_classes"])
+    return maps.reshape(len(rows), *maps.shape[-2:]).numpy()
+
+
+def load_picks(run: Path) -> dict[str, np.ndarray]:
+    """The picks of ``run``'s newest replay: ``expert``, ``held`` bool [P]; ``height`` m [P] at the pick
+    pixel; ``heightmap`` [P, H, W] float32 m before the pick; ``pixel`` [P, 2] int (row, col); ``action``
+    [P, 3] int64; ``hand_size`` (px of the in-hand image)."""
+    meta, frames, picks, _ = _replay_frames(run)
+    picks = picks.nonzero().squeeze(1)
+    maps = _heights(meta, frames, "heightmap", picks)
     action = frames["action"][picks].long()
     pixel = action[:, :2].numpy()
-    return {"expert": frames["is_expert"][picks].reshape(-1).bool().numpy(), "held": holding[picks + 1].numpy(),
+    return {"expert": frames["is_expert"][picks].reshape(-1).bool().numpy(),
+            "held": frames["holding"][picks + 1].reshape(-1).bool().numpy(),
             "height": maps[np.arange(len(picks)), pixel[:, 0], pixel[:, 1]], "heightmap": maps, "pixel": pixel,
             "action": action.numpy(), "hand_size": int(frames["in_hand"].shape[-1]),
             "num_rotations": _num_rotations(run)}
@@ -81,21 +95,11 @@ def load_picks(run: Path) -> dict[str, np.ndarray]:
 def load_places(run: Path) -> dict[str, np.ndarray]:
     """The places of ``run``'s newest replay (transitions from a holding hand): ``expert`` bool [P]; ``heightmap``
     [P, H, W] and ``in_hand`` [P, h, h] float32 m before the place; ``action`` [P, 3] int64; ``holding`` True."""
-    replays = sorted(run.glob("replay-*"))
-    if not replays:
-        raise SystemExit(f"no replay-* folder in {run}: pass a training run's folder (hydra.run.dir)")
-    meta = json.loads((replays[-1] / "frame_replay.json").read_text())
-    frames = TensorDict.load_memmap(replays[-1] / "frames")
-    n = int(meta["num_frames"])
-    holding = frames["holding"][:n].reshape(-1).bool()
-    places = torch.nonzero(~frames["is_last"][:n].reshape(-1).bool()[:-1] & holding[:-1]).squeeze(1)
-
-    def heights(key):
-        maps = geometry.classes_to_heights(frames[key][places], meta["max_height"], meta["num_classes"])
-        return maps.reshape(len(places), *maps.shape[-2:]).numpy()
-
-    return {"expert": frames["is_expert"][places].reshape(-1).bool().numpy(), "heightmap": heights("heightmap"),
-            "in_hand": heights("in_hand"), "action": frames["action"][places].long().numpy(), "holding": True}
+    meta, frames, _, places = _replay_frames(run)
+    places = places.nonzero().squeeze(1)
+    return {"expert": frames["is_expert"][places].reshape(-1).bool().numpy(),
+            "heightmap": _heights(meta, frames, "heightmap", places), "in_hand": _heights(meta, frames, "in_hand", places),
+            "action": frames["action"][places].long().numpy(), "holding": True}
 
 
 def _hand(p: dict, rows: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
