@@ -215,6 +215,8 @@ def choose_nearest_expert(planner, task) -> list[tuple[float, int]]:
 
     def nearest_expert(heightmap, in_hand, holding, candidates, penalty, **options):
         scores, result = score(heightmap, in_hand, holding, candidates, penalty, **options)
+        if candidates.shape[0] != 1:  # the expert reads the one env's state
+            raise ValueError(f"--choose nearest-expert plays one env: a batch of 1 state, got {candidates.shape[0]}")
         if not bool(holding.reshape(-1)[0]):
             return scores, result
         expert = torch.as_tensor(task.expert_action(noiseless))

@@ -190,5 +190,7 @@ def test_nearest_expert_choice_takes_the_candidate_nearest_the_experts_action_ro
         assert nearest == [(5.0, 0, pytest.approx(4 / q_map.numel()))]
         scores, _ = planner.score(None, None, torch.tensor([0.0]), candidates, 0.0)  # a pick: the planner's scores
         assert torch.equal(scores, planner_scores) and len(nearest) == 1
+        with pytest.raises(ValueError, match="plays one env: a batch of 1 state, got 2"):
+            planner.score(None, None, torch.tensor([1.0, 1.0]), candidates.repeat(2, 1, 1), 0.0)
     finally:
         task.close()
