@@ -35,6 +35,8 @@ states: first, in the top 10, the median count of entries above it and its media
 ``--places`` reads the expert's *places* instead (an LDM agent's run, nothing else): the expert's place in Q's whole
 map on the last 100 expert place states (each with its in-hand image), before and after ``--margin-steps`` on the
 other expert places: whether Q has learnt, or can learn from the demonstrations, where the expert sets a block.
+``--save-weights FILE`` writes the weights so fitted as a checkpoint to play (``place_outcomes.py FILE``): what the
+pile does when Q's place map is nearer the expert's.
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -443,9 +445,22 @@ def proposals_report(run: Path, surface: float, max_region: int, opening: float,
         print(f"  {when}: {line}")
 
 
+def save_fitted(agent, run: Path, weights: str, path: Path, note: str) -> None:
+    """Write ``agent``'s policy weights (its Q fitted by ``--margin-steps``) to ``path`` as a ``best_policy.pt`` is
+    written, under the meta of ``run``/``weights`` plus ``note``: a checkpoint ``place_outcomes.py`` and
+    ``recipes/evaluate.py`` play like any other."""
+    from ldm_rl.run.checkpoint import read_checkpoint_meta, save_checkpoint
+
+    meta = {**read_checkpoint_meta(run / weights), "note": note}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(path, {"agent": agent.policy_state_dict()}, meta=meta)
+    print(f"saved the fitted weights to {path}")
+
+
 def places_report(run: Path, margin_steps: int, margin_lr: float, margin_temperature: float = 0.0,
-                  weights: str = "checkpoint.pt") -> None:
-    """The expert's place in ``run``'s Q map on its last 100 expert place states, before and after ``margin_steps``."""
+                  weights: str = "checkpoint.pt", save: Path | None = None) -> None:
+    """The expert's place in ``run``'s Q map on its last 100 expert place states, before and after ``margin_steps``
+    (``save``: where to write the fitted weights, see :func:`save_fitted`)."""
     from ldm_rl.agents import load_agent
 
     p = load_places(run)
@@ -461,6 +476,9 @@ def places_report(run: Path, margin_steps: int, margin_lr: float, margin_tempera
         print(f"the margin term over {margin_steps} steps on the other {len(expert) - 100} expert places: "
               + " → ".join(f"{t:.3f}" for t in trace))
         ranks.append((f"after {margin_steps} margin steps", rank_reading(agent, p, expert[-100:])))
+        if save is not None:
+            save_fitted(agent, run, weights, save, f"Q fitted by benchmarks/pick_outcomes.py --places --margin-steps "
+                        f"{margin_steps} --margin-lr {margin_lr:g} --margin-temperature {margin_temperature:g}")
     print(f"\n{run}: the expert's place in Q's whole map, last 100 expert place states ({weights}):")
     for when, line in ranks:
         print(f"  {when}: {line}")
@@ -489,6 +507,9 @@ def main() -> None:
                         help="with --proposals: read the run's Q weights in frames padded by this many px (agent.q_frame_pad)")
     parser.add_argument("--weights", default="checkpoint.pt",
                         help="with --proposals: the weights file in each run folder to read (best_policy.pt: the selected ones)")
+    parser.add_argument("--save-weights", type=Path, default=None,
+                        help="with --places and --margin-steps: write the fitted weights to this file (a checkpoint "
+                             "benchmarks/place_outcomes.py and recipes/evaluate.py play)")
     args = parser.parse_args()
     if args.weights not in ("checkpoint.pt", "best_policy.pt"):
         parser.error(f"--weights must be checkpoint.pt or best_policy.pt (a file in the run folder), got {args.weights!r}")
@@ -498,6 +519,9 @@ def main() -> None:
         parser.error(f"--margin-steps must be >= 0 and goes with --proposals or --places, got {args.margin_steps}")
     if args.places and (args.proposals or args.model):
         parser.error("--places reads the expert's places alone: leave out --proposals and --model")
+    if args.save_weights is not None and not (args.places and args.margin_steps and len(args.runs) == 1):
+        parser.error(f"--save-weights {args.save_weights} writes the Q that --margin-steps fits on one run's places: "
+                     "pass --places, --margin-steps and one run")
     if args.frame_pad and not args.proposals:
         parser.error(f"--frame-pad {args.frame_pad} pads the Q that --proposals reads: pass --proposals too")
     if not args.margin_lr > 0:
@@ -513,7 +537,8 @@ def main() -> None:
     torch.set_num_threads(1)
     for run in args.runs:
         if args.places:
-            places_report(run, args.margin_steps, args.margin_lr, args.margin_temperature, args.weights)
+            places_report(run, args.margin_steps, args.margin_lr, args.margin_temperature, args.weights,
+                          args.save_weights)
             continue
         report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
         if args.proposals:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -198,6 +199,8 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     (["--weights", "best_policy.pt"], "pass --proposals too"),
     (["--margin-steps", "5"], "goes with --proposals or --places, got 5"),
     (["--places", "--proposals"], "--places reads the expert's places alone"),
+    (["--places", "--save-weights", "fit.pt"], "--save-weights fit.pt writes the Q that --margin-steps fits"),
+    (["--margin-steps", "5", "--proposals", "--save-weights", "fit.pt"], "pass --places, --margin-steps and one run"),
 ])
 def test_pick_outcomes_refuses_weights_it_cannot_read(argv, message, monkeypatch, capsys, tmp_path):
     """--weights names a file of the run folder (the final or the selected weights), and only --proposals reads it:
@@ -221,3 +224,31 @@ def test_pick_outcomes_feeds_q_the_hand_of_a_place_and_an_empty_hand_to_a_pick()
     assert holding.dtype == torch.bool and holding.all() and holding.shape == (2, 1)
     hand, holding = bench._hand({"hand_size": 24}, rows)
     assert hand.shape == (2, 1, 24, 24) and not hand.any() and not holding.any()
+
+
+def test_save_weights_writes_the_fitted_q_as_a_checkpoint_that_plays(tmp_path, capsys):
+    """--save-weights: the fitted weights under the run's meta plus a note; load_agent rebuilds them exactly."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from ldm_rl.agents import build_agent, load_agent
+    from ldm_rl.run.checkpoint import read_checkpoint_meta, save_checkpoint
+
+    bench = load_benchmark("pick_outcomes")
+    root = Path(__file__).resolve().parents[1]
+    with initialize_config_dir(version_base="1.3", config_dir=str(root / "conf")):
+        cfg = compose(config_name="train_policy", overrides=["experiment=smoke"])
+    stored = {key: value for key, value in OmegaConf.to_container(cfg).items() if key != "logger"}
+    meta = {"kind": "agent", "agent": "ldm", "preset": "lite", "task": cfg.env.id,
+            "config": OmegaConf.to_container(OmegaConf.create(stored), resolve=True)}
+    save_checkpoint(tmp_path / "checkpoint.pt", {"agent": build_agent(cfg, float(cfg.env.max_height)).policy_state_dict()},
+                    meta=meta)
+    agent, _ = load_agent(tmp_path / "checkpoint.pt")
+    weight = next(agent.planner.q_network.parameters())
+    with torch.no_grad():
+        weight.add_(1.0)  # what --margin-steps does, in one step
+    bench.save_fitted(agent, tmp_path, "checkpoint.pt", tmp_path / "fit" / "fitted.pt", "Q fitted")
+    assert "saved the fitted weights to" in capsys.readouterr().out
+    fitted, fitted_cfg = load_agent(tmp_path / "fit" / "fitted.pt")
+    assert torch.equal(next(fitted.planner.q_network.parameters()), weight.detach())
+    assert fitted_cfg == meta["config"] and read_checkpoint_meta(tmp_path / "fit" / "fitted.pt")["note"] == "Q fitted"
