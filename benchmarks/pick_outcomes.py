@@ -22,8 +22,9 @@ Last, the agent's on-object picks in ``--parts`` consecutive parts of equal size
 share that held and the share whose object's span fits the open fingers, part by part, so whether the agent's picks
 improve over training.
 With ``--proposals`` (an LDM agent's run): its greedy planner's N pick proposals on the last 100 expert pick states
-and the last 100 of the agent's, read with the run's ``checkpoint.pt`` (online weights; ``--weights best_policy.pt``:
-the selected ones, on the same states): how many are a fitting,
+and the last 100 of the agent's, read with the run's ``checkpoint.pt`` (the final weights; ``--weights best_policy.pt``:
+the selected ones, on the same states; either way the greedy planner's: the averaged weights of a run trained with
+``agent.greedy_ema_decay``): how many are a fitting,
 centred grasp (on an object, its span along the closing direction under ``--opening``, within 4 px of its centroid),
 whether Q's first one is, and whether the one V(f(s, a)) chooses is. ``--margin-steps K`` first fits the run's Q
 with the expert margin term alone (``agent.expert_margin_weight``; Adam, 4 expert picks per step, ``--margin-lr``)
@@ -151,12 +152,13 @@ def auroc(score: np.ndarray, label: np.ndarray) -> float:
 
 
 def world_model(run: Path):
-    """The world model of ``run``'s ``checkpoint.pt``."""
+    """The world model of ``run``'s ``checkpoint.pt`` that its greedy planner reads (the averaged one of a run trained
+    with ``agent.greedy_ema_decay``)."""
     from ldm_rl.agents import load_agent
     from ldm_rl.world_model import DynamicsModel
 
     agent, _ = load_agent(run / "checkpoint.pt")
-    model = next((m for m in agent.modules() if isinstance(m, DynamicsModel)), None)
+    model = next((m for m in agent.greedy_policy.modules() if isinstance(m, DynamicsModel)), None)
     if model is None:
         raise SystemExit(f"{run}/checkpoint.pt holds agent {agent.name!r}, which has no world model")
     return model
@@ -305,7 +307,7 @@ def proposal_reading(agent, p: dict, rows: np.ndarray, surface: float, max_regio
                      resolution: float, batch: int = 10) -> dict[str, int]:
     """The greedy planner's proposals on the picks ``rows`` of ``p``: counts of fitting and fitting-centred
     proposals, of states with one such, of Q's first proposal and of V's choice being one."""
-    planner = agent.planner.eval()
+    planner = agent.greedy_policy.eval()
     hp = planner.hyperparameters(greedy=True)
     out = dict.fromkeys(("states", "proposals", "fit", "good", "any good", "first good", "chosen fit",
                          "chosen good"), 0)
@@ -344,9 +346,10 @@ def expert_ranks(q_maps: torch.Tensor, action: torch.Tensor) -> tuple[np.ndarray
 
 
 def rank_reading(agent, p: dict, rows: np.ndarray, batch: int = 10) -> str:
-    """The expert's pick (or place) on ``rows`` in the planner's Q map: proposable ones, first / in the top 10, median
+    """The expert's pick (or place) on ``rows`` in the greedy planner's Q map (the averaged weights of a run trained
+    with ``agent.greedy_ema_decay``: what its greedy decisions read): proposable ones, first / in the top 10, median
     entries above it and median gap to the map's best (Q's fitted units)."""
-    q = agent.planner.q_network.eval()
+    q = agent.greedy_policy.q_network.eval()
     ranks, gaps, pixels, turned = [], [], [], []
     with torch.no_grad():
         for start in range(0, len(rows), batch):
@@ -369,11 +372,13 @@ def rank_reading(agent, p: dict, rows: np.ndarray, batch: int = 10) -> str:
 
 def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: float = 0.1, seed: int = 0,
                temperature: float = 0.0) -> list[float]:
-    """Fit ``agent``'s online Q on the picks (or places) ``rows`` with the expert margin term alone (4 per step; soft
-    max at ``temperature`` > 0); returns the term's value every 50 steps."""
+    """Fit the Q of ``agent``'s greedy planner (the averaged copy of a run trained with ``agent.greedy_ema_decay``,
+    else the online one) on the picks (or places) ``rows`` with the expert margin term alone (4 per step; soft max
+    at ``temperature`` > 0); returns the term's value every 50 steps."""
     from ldm_rl.objectives import SpatialDQNLoss
 
-    loss = SpatialDQNLoss(agent.planner.q_network, expert_margin_weight=1.0, expert_margin=margin, expert_margin_rows=4,
+    q = agent.greedy_policy.q_network.requires_grad_(True)  # an averaged copy is built frozen
+    loss = SpatialDQNLoss(q, expert_margin_weight=1.0, expert_margin=margin, expert_margin_rows=4,
                           expert_margin_temperature=temperature)
     optimiser = torch.optim.Adam(list(loss.q_network_params.values(True, True)), lr=lr)
     rng, trace = np.random.default_rng(seed), []
@@ -414,7 +419,7 @@ def proposals_report(run: Path, surface: float, max_region: int, opening: float,
     if agent.name != "ldm":
         raise SystemExit(f"--proposals reads an LDM agent's planner; {run}/{weights} holds agent {agent.name!r}")
     if frame_pad:
-        agent.planner.q_network = padded_q(agent.planner.q_network, frame_pad)
+        agent.greedy_policy.q_network = padded_q(agent.greedy_policy.q_network, frame_pad)
     expert = np.nonzero(p["expert"])[0]
     mine = np.nonzero(~p["expert"])[0]
     if len(expert) <= 100 + 4 * (margin_steps > 0):

@@ -226,23 +226,30 @@ def test_pick_outcomes_feeds_q_the_hand_of_a_place_and_an_empty_hand_to_a_pick()
     assert hand.shape == (2, 1, 24, 24) and not hand.any() and not holding.any()
 
 
-def test_save_weights_writes_the_fitted_q_as_a_checkpoint_that_plays(tmp_path, capsys):
-    """--save-weights: the fitted weights under the run's meta plus a note; load_agent rebuilds them exactly."""
+def _smoke_agent(overrides=()):
+    """The LDM agent of experiment=smoke (random weights) and the meta a training run writes for it."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from ldm_rl.agents import build_agent, load_agent
-    from ldm_rl.run.checkpoint import read_checkpoint_meta, save_checkpoint
+    from ldm_rl.agents import build_agent
 
-    bench = load_benchmark("pick_outcomes")
     root = Path(__file__).resolve().parents[1]
     with initialize_config_dir(version_base="1.3", config_dir=str(root / "conf")):
-        cfg = compose(config_name="train_policy", overrides=["experiment=smoke"])
+        cfg = compose(config_name="train_policy", overrides=["experiment=smoke", *overrides])
     stored = {key: value for key, value in OmegaConf.to_container(cfg).items() if key != "logger"}
     meta = {"kind": "agent", "agent": "ldm", "preset": "lite", "task": cfg.env.id,
             "config": OmegaConf.to_container(OmegaConf.create(stored), resolve=True)}
-    save_checkpoint(tmp_path / "checkpoint.pt", {"agent": build_agent(cfg, float(cfg.env.max_height)).policy_state_dict()},
-                    meta=meta)
+    return build_agent(cfg, float(cfg.env.max_height)), meta
+
+
+def test_save_weights_writes_the_fitted_q_as_a_checkpoint_that_plays(tmp_path, capsys):
+    """--save-weights: the fitted weights under the run's meta plus a note; load_agent rebuilds them exactly."""
+    from ldm_rl.agents import load_agent
+    from ldm_rl.run.checkpoint import read_checkpoint_meta, save_checkpoint
+
+    bench = load_benchmark("pick_outcomes")
+    trained, meta = _smoke_agent()
+    save_checkpoint(tmp_path / "checkpoint.pt", {"agent": trained.policy_state_dict()}, meta=meta)
     agent, _ = load_agent(tmp_path / "checkpoint.pt")
     weight = next(agent.planner.q_network.parameters())
     with torch.no_grad():
@@ -252,3 +259,32 @@ def test_save_weights_writes_the_fitted_q_as_a_checkpoint_that_plays(tmp_path, c
     fitted, fitted_cfg = load_agent(tmp_path / "fit" / "fitted.pt")
     assert torch.equal(next(fitted.planner.q_network.parameters()), weight.detach())
     assert fitted_cfg == meta["config"] and read_checkpoint_meta(tmp_path / "fit" / "fitted.pt")["note"] == "Q fitted"
+
+
+def test_margin_fit_and_q_readings_act_on_the_weights_the_greedy_policy_plays():
+    """A run trained with agent.greedy_ema_decay plays its averaged weights: --margin-steps fits that Q (the online
+    one is left as it is) and the rank reading reads it, so a saved fit plays what was measured."""
+    bench = load_benchmark("pick_outcomes")
+    agent, _ = _smoke_agent(["agent.greedy_ema_decay=0.99"])
+    agent.averaged_planner.update_parameters(agent.planner)  # one averaged update: the greedy policy is the copy
+    assert agent.greedy_policy is not agent.planner
+    online = {k: v.clone() for k, v in agent.planner.q_network.state_dict().items()}
+    averaged = {k: v.clone() for k, v in agent.greedy_policy.q_network.state_dict().items()}
+    rng = np.random.default_rng(0)
+    n = 6
+    heightmap = np.zeros((n, 128, 128), np.float32)
+    heightmap[:, 50:70, 50:70] = 0.03
+    p = {"heightmap": heightmap, "in_hand": rng.random((n, 24, 24)).astype(np.float32) * 0.03, "holding": True,
+         "action": np.stack([np.full(n, 60), np.full(n, 62), np.zeros(n)], 1).astype(np.int64)}
+    trace = bench.fit_margin(agent, p, np.arange(n), steps=3, lr=1e-2)
+    assert len(trace) == 2 and all(np.isfinite(trace))  # steps 0 and 2
+    for key, value in agent.planner.q_network.state_dict().items():
+        assert torch.equal(value, online[key]), key  # the online Q untouched
+    assert any(not torch.equal(v, averaged[k]) for k, v in agent.greedy_policy.q_network.state_dict().items())
+    reading = bench.rank_reading(agent, p, np.arange(n))
+    with torch.no_grad():  # spoil the online Q (a constant map): the reading of the greedy one does not move
+        for param in agent.planner.q_network.parameters():
+            param.zero_()
+    assert bench.rank_reading(agent, p, np.arange(n)) == reading
+    agent.averaged_planner.module.q_network.load_state_dict(agent.planner.q_network.state_dict())
+    assert bench.rank_reading(agent, p, np.arange(n)) != reading  # and it does read the greedy copy's weights
