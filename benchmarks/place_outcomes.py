@@ -21,7 +21,9 @@ proposal (its argmax under the greedy ``argmax`` proposal): the place Q alone wo
 candidate nearest the noiseless scripted expert's place for the same state (pixels plus ``ROTATION_PX`` per rotation
 bin apart), and reports how near the nearest was: whether the candidates hold the expert's place. ``--expert-does places``
 (or ``picks``) splits the work: the scripted expert takes those primitives, the checkpoint's policy the others, which
-tells the part the pick order plays from the part the places play.
+tells the part the pick order plays from the part the places play. ``--place-weights CHECKPOINT`` hands the places to
+another checkpoint's greedy planner (``pick_outcomes.py --places --margin-steps K --save-weights``: the same weights with
+Q's place map fitted), the picks staying with the first: what a sharper place map alone does to the pile.
 """
 
 from __future__ import annotations
@@ -247,6 +249,16 @@ def split_policy(agent_policy, expert, expert_does: str):
     return policy
 
 
+def route_places(pick_policy, place_policy):
+    """A policy handing the decisions with a block in the hand to ``place_policy`` and the others to ``pick_policy``,
+    each writing its whole output (two planners of one kind: the same keys at every step)."""
+    def policy(tensordict):
+        holding = bool(tensordict.get("holding").reshape(-1)[0])
+        return (place_policy if holding else pick_policy)(tensordict)
+
+    return policy
+
+
 def play(env, task, policy, episodes: int, seed: int, tilt: float, on_episode=None) -> tuple[list[dict], list[float]]:
     """Greedy episodes on the held-out scenes of ``seed``: the place rows and each packed episode's pile top (m)."""
     from ldm_rl.envs.tasks.bin_packing import pile_top_from_reward
@@ -293,7 +305,12 @@ def parse_args(argv=None):
                              "candidate nearest the scripted expert's place")
     parser.add_argument("--expert-does", choices=("places", "picks"), default=None,
                         help="the scripted expert takes these primitives, the checkpoint's policy the others")
+    parser.add_argument("--place-weights", default=None, metavar="CHECKPOINT",
+                        help="another checkpoint of the same run's kind whose greedy planner makes the places (e.g. "
+                             "pick_outcomes.py --save-weights' fit), the checkpoint's the picks")
     args = parser.parse_args(argv)
+    if args.place_weights and (args.expert_does or args.choose != "value"):
+        parser.error(f"--place-weights {args.place_weights} makes the places: leave out --expert-does and --choose")
     if args.expert_does and args.choose != "value":
         parser.error(f"--expert-does {args.expert_does} leaves no place decision to --choose {args.choose}: give one")
     if args.episodes < 1:
@@ -356,6 +373,15 @@ def main(argv=None) -> None:
         decisions.extend(decision_rows(rollout, planner, interior, args.min_volume, task.workspace.resolution))
 
     policy = agent.evaluation_policy()
+    if args.place_weights:
+        try:
+            placer, place_cfg = load_agent(args.place_weights, planner=args.planner or None)
+        except (CheckpointError, ValueError) as err:
+            sys.exit(f"error: {err}")
+        if placer.name != "ldm" or planner is None or place_cfg["env"]["id"] != cfg["env"]["id"]:
+            sys.exit(f"error: --place-weights needs two LDM checkpoints of one task; {args.place_weights} holds "
+                     f"{placer.name!r} on {place_cfg['env']['id']}, {args.checkpoint} {agent.name!r} on {cfg['env']['id']}")
+        policy, planner = route_places(policy, placer.evaluation_policy()), placer.greedy_policy
     if args.expert_does:
         policy, planner = split_policy(policy, expert_policy(env), args.expert_does), None
     with torch.no_grad():
@@ -366,7 +392,8 @@ def main(argv=None) -> None:
           + (f", planner {args.planner}" if args.planner else "")
           + {"value": "", "lowest-top": ", places chosen by the lowest predicted pile top",
              "q-first": ", places at Q's argmax", "nearest-expert": ", places at the candidate nearest the expert's"}[args.choose]
-          + (f", the scripted expert's {args.expert_does}" if args.expert_does else ""))
+          + (f", the scripted expert's {args.expert_does}" if args.expert_does else "")
+          + (f", places by {args.place_weights}" if args.place_weights else ""))
     print("| who | packed | mean pile top of the packs | places into the bin | resting tilted | raised | tilted in the hand "
           "| level but turned > 10° off the walls |")
     print("|---|---|---|---|---|---|---|---|")

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from benchmark_loader import load_benchmark
 
@@ -76,6 +77,8 @@ def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
     (["--episodes", "0"], "--episodes must be >= 1, got 0"),
     (["--tilt", "90"], "--tilt must be in (0, 90) degrees, got 90.0"),
     (["--planner", "name"], "--planner takes KEY=VALUE items, got 'name'"),
+    (["--place-weights", "fit.pt", "--choose", "q-first"], "--place-weights fit.pt makes the places: leave out"),
+    (["--place-weights", "fit.pt", "--expert-does", "picks"], "--place-weights fit.pt makes the places: leave out"),
 ])
 def test_place_outcomes_refuses_bad_arguments_in_one_line(argv, message, capsys):
     bench = load_benchmark("place_outcomes")
@@ -194,3 +197,21 @@ def test_nearest_expert_choice_takes_the_candidate_nearest_the_experts_action_ro
             planner.score(None, None, torch.tensor([1.0, 1.0]), candidates.repeat(2, 1, 1), 0.0)
     finally:
         task.close()
+
+
+def test_route_places_hands_the_held_blocks_to_the_placer_and_keeps_each_output_whole():
+    """--place-weights: a decision with a block in the hand is the placer's, every other the picker's, with all the
+    keys each writes (the candidates the decision readings need), not the action alone."""
+    from tensordict import TensorDict
+
+    bench = load_benchmark("place_outcomes")
+
+    def planner(tag):
+        def act(td):
+            return td.set("action", torch.full((1, 3), tag)).set("candidate_actions", torch.full((1, 2, 3), tag))
+        return act
+
+    policy = bench.route_places(planner(1), planner(2))
+    for holding, tag in ((False, 1), (True, 2)):
+        out = policy(TensorDict({"holding": torch.tensor([[holding]])}, batch_size=[1]))
+        assert (out["action"] == tag).all() and (out["candidate_actions"] == tag).all()
