@@ -23,7 +23,8 @@ bin apart), and reports how near the nearest was: whether the candidates hold th
 (or ``picks``) splits the work: the scripted expert takes those primitives, the checkpoint's policy the others, which
 tells the part the pick order plays from the part the places play. ``--place-weights CHECKPOINT`` hands the places to
 another checkpoint's greedy planner (``pick_outcomes.py --places --margin-steps K --save-weights``: the same weights with
-Q's place map fitted), the picks staying with the first: what a sharper place map alone does to the pile.
+Q's place map fitted), the picks staying with the first: what a sharper place map alone does to the pile (``--choose``
+then acts on that planner's places).
 """
 
 from __future__ import annotations
@@ -309,8 +310,8 @@ def parse_args(argv=None):
                         help="another checkpoint of the same run's kind whose greedy planner makes the places (e.g. "
                              "pick_outcomes.py --save-weights' fit), the checkpoint's the picks")
     args = parser.parse_args(argv)
-    if args.place_weights and (args.expert_does or args.choose != "value"):
-        parser.error(f"--place-weights {args.place_weights} makes the places: leave out --expert-does and --choose")
+    if args.place_weights and args.expert_does:
+        parser.error(f"--place-weights {args.place_weights} makes the places: leave out --expert-does")
     if args.expert_does and args.choose != "value":
         parser.error(f"--expert-does {args.expert_does} leaves no place decision to --choose {args.choose}: give one")
     if args.episodes < 1:
@@ -356,6 +357,15 @@ def main(argv=None) -> None:
         sys.exit(f"error: {args.checkpoint} plays {cfg['env']['id']}, not bin packing")
     task = unwrap(env)
     planner = agent.greedy_policy if agent.name == "ldm" else None
+    if args.place_weights:  # the places' planner: the one --choose acts on and the decision readings read
+        try:
+            placer, place_cfg = load_agent(args.place_weights, planner=args.planner or None)
+        except (CheckpointError, ValueError) as err:
+            sys.exit(f"error: {err}")
+        if placer.name != "ldm" or planner is None or place_cfg["env"]["id"] != cfg["env"]["id"]:
+            sys.exit(f"error: --place-weights needs two LDM checkpoints of one task; {args.place_weights} holds "
+                     f"{placer.name!r} on {place_cfg['env']['id']}, {args.checkpoint} {agent.name!r} on {cfg['env']['id']}")
+        planner = placer.greedy_policy
     if args.choose != "value" and planner is None:
         sys.exit(f"error: --choose {args.choose} needs an LDM agent's checkpoint, {args.checkpoint} is {agent.name}'s")
     if args.choose == "lowest-top":
@@ -374,14 +384,7 @@ def main(argv=None) -> None:
 
     policy = agent.evaluation_policy()
     if args.place_weights:
-        try:
-            placer, place_cfg = load_agent(args.place_weights, planner=args.planner or None)
-        except (CheckpointError, ValueError) as err:
-            sys.exit(f"error: {err}")
-        if placer.name != "ldm" or planner is None or place_cfg["env"]["id"] != cfg["env"]["id"]:
-            sys.exit(f"error: --place-weights needs two LDM checkpoints of one task; {args.place_weights} holds "
-                     f"{placer.name!r} on {place_cfg['env']['id']}, {args.checkpoint} {agent.name!r} on {cfg['env']['id']}")
-        policy, planner = route_places(policy, placer.evaluation_policy()), placer.greedy_policy
+        policy = route_places(policy, placer.evaluation_policy())
     if args.expert_does:
         policy, planner = split_policy(policy, expert_policy(env), args.expert_does), None
     with torch.no_grad():

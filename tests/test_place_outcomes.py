@@ -77,7 +77,6 @@ def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
     (["--episodes", "0"], "--episodes must be >= 1, got 0"),
     (["--tilt", "90"], "--tilt must be in (0, 90) degrees, got 90.0"),
     (["--planner", "name"], "--planner takes KEY=VALUE items, got 'name'"),
-    (["--place-weights", "fit.pt", "--choose", "q-first"], "--place-weights fit.pt makes the places: leave out"),
     (["--place-weights", "fit.pt", "--expert-does", "picks"], "--place-weights fit.pt makes the places: leave out"),
 ])
 def test_place_outcomes_refuses_bad_arguments_in_one_line(argv, message, capsys):
