@@ -214,3 +214,32 @@ def test_route_places_hands_the_held_blocks_to_the_placer_and_keeps_each_output_
     for holding, tag in ((False, 1), (True, 2)):
         out = policy(TensorDict({"holding": torch.tensor([[holding]])}, batch_size=[1]))
         assert (out["action"] == tag).all() and (out["candidate_actions"] == tag).all()
+
+
+def test_place_weights_of_another_task_or_a_missing_file_stop_in_one_line_before_any_episode(tmp_path, capsys):
+    """--place-weights must name an LDM checkpoint of the same task: another task's, or no file, is one error line."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from ldm_rl.agents import build_agent
+    from ldm_rl.run.checkpoint import save_checkpoint
+
+    bench = load_benchmark("place_outcomes")
+    root = Path(__file__).resolve().parents[1]
+    paths = {}
+    for env in ("bin_packing", "block_stacking"):
+        with initialize_config_dir(version_base="1.3", config_dir=str(root / "conf")):
+            cfg = compose(config_name="train_policy", overrides=["experiment=smoke", f"env={env}"])
+        stored = {key: value for key, value in OmegaConf.to_container(cfg).items() if key != "logger"}
+        meta = {"kind": "agent", "agent": "ldm", "preset": "lite", "task": cfg.env.id,
+                "config": OmegaConf.to_container(OmegaConf.create(stored), resolve=True)}
+        agent = build_agent(cfg, float(cfg.env.max_height))
+        paths[env] = save_checkpoint(tmp_path / f"{env}.pt", {"agent": agent.policy_state_dict()}, meta=meta)
+    for placer, expected in ((paths["block_stacking"], "needs two LDM checkpoints of one task"),
+                             (tmp_path / "nowhere.pt", "nowhere.pt")):
+        with pytest.raises(SystemExit) as stop:
+            bench.main([str(paths["bin_packing"]), "--episodes", "1", "--place-weights", str(placer)])
+        message = str(stop.value)
+        assert message.startswith("error: ") and expected in message and "\n" not in message
