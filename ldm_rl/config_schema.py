@@ -468,6 +468,8 @@ class AgentConfig:
     target_uncertainty_penalty: float = spec(0.0, ge=0.0, doc="ldm: λ of the V target's V⁻ − λ·H⁻ (nats; 0 = off)")
     termination_head: bool = spec(False, doc="ldm: V composed from a termination head, V = T·R + (1 − T)·W "
                                   "(T fitted on the terminated flag)")
+    value_log_floor: Optional[float] = spec(None, gt=0, lt=1, doc="ldm: V's head predicts log V, fitted on "
+                                            "log(max(target, this)); null = V itself")
     q_proposal_fit: int = spec(0, ge=0, doc="ldm: target proposals per next state Q is also fitted on, toward "
                                "V⁻ of their prediction (0 = off)")
     # the baselines' own keys (null unless that agent is chosen; checked below)
@@ -501,6 +503,13 @@ class AgentConfig:
             elif node.get("value_raise_height") is None:
                 found.append(f"{prefix}value_raise_levels={_show(node.value_raise_levels)} needs "
                              f"{prefix}value_raise_height (metres of one level, e.g. 0.04 for the cubes)")
+        if node.get("value_log_floor") is not None:
+            if node.name != "ldm":
+                found.append(f"{prefix}value_log_floor={_show(node.value_log_floor)} is set but only agent=ldm uses it "
+                             f"(agent.name={node.name})")
+            elif node.get("termination_head"):
+                found.append(f"{prefix}value_log_floor={_show(node.value_log_floor)} cannot be combined with "
+                             f"{prefix}termination_head=true (a composed V has no log head); set one of them off")
         if node.get("termination_head") and node.name != "ldm":
             found.append(f"{prefix}termination_head=true is set but only agent=ldm uses it (agent.name={node.name})")
         if node.get("greedy_ema_tail") is not None and node.get("greedy_ema_decay") is None:

@@ -514,7 +514,7 @@ def test_option_misuse_is_one_clear_config_error(overrides, message):
 def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_planner(tmp_path):
     """CI smoke: a tiny training run with the tree planner, both entropy penalties, swept pick rotations, the failed-pick memory,
     the revisit rule with its scene memory, the LDM's height anchor, 2- or 3-block training scenes, Q fitted on its
-    proposals and the expert margin, then recipes/evaluate.py
+    proposals and the expert margin, V on the log scale, then recipes/evaluate.py
     planning its weights with planner overrides (written into evaluation.json)."""
     import json
     import os
@@ -535,9 +535,14 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
         "planner.uncertainty_penalty=0.1", "planner.greedy_uncertainty_penalty=0.3", "planner.empty_picks_last=true",
         "planner.pick_rotations=2", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
         "planner.revisits_last=true", "env.scene_memory=4", "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1",
-        "model.height_anchor=0.08", "agent.expert_margin_weight=0.1", f"hydra.run.dir={train}")
+        "model.height_anchor=0.08", "agent.expert_margin_weight=0.1", "agent.value_log_floor=0.01",
+        f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
+    from ldm_rl.agents import load_agent
+
+    agent, _ = load_agent(train / "checkpoint.pt")  # the log-scale V is rebuilt from the checkpoint's config
+    assert agent.loss.value_network.value_log_floor == 0.01
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
         "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true",
         "planner.pick_outcome=expected", "planner.pick_rotations=4", "failed_pick_memory=0",

@@ -399,6 +399,26 @@ def test_a_termination_head_composes_v_from_the_reward_where_the_episode_ends():
         VCNN(MAX_HEIGHT, termination_head="yes")
 
 
+def test_a_log_scale_v_is_the_exponential_of_its_head_and_starts_near_its_floor():
+    torch.manual_seed(3)
+    v = build_value_network("lite", max_height=MAX_HEIGHT, width=TINY, value_log_floor=0.01)
+    scene, in_hand, _ = states(5, seed=2)
+    with torch.no_grad():
+        value = v(scene, in_hand)
+        value2, reward = v.value_and_reward(scene, in_hand)
+        heads = v.heads(scene, in_hand)
+        raw = v.value_head(v._features(*(encode_heights(x, v.max_height, v.num_classes) for x in (scene, in_hand))))
+    torch.testing.assert_close(value, raw.exp())  # V is the exponential of the value head, so it is positive
+    assert torch.equal(value, value2) and torch.equal(value, heads[0]) and torch.equal(reward, heads[1])
+    assert (value > 0).all() and (value.log() - math.log(0.01)).abs().max() < 1.0  # starts near the floor
+    assert tiny_v().value_log_floor is None
+    for bad in (0.0, 1.0, True, "0.01"):
+        with pytest.raises(ValueError, match=rf"value_log_floor must be null .* got {bad!r}"):
+            VCNN(MAX_HEIGHT, value_log_floor=bad)
+    with pytest.raises(ValueError, match="value_log_floor=0.01 cannot be combined with termination_head=True"):
+        VCNN(MAX_HEIGHT, termination_head=True, value_log_floor=0.01)
+
+
 # --------------------------------------------------------------------------------------------
 # input validation
 # --------------------------------------------------------------------------------------------

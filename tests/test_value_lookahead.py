@@ -387,3 +387,40 @@ def test_a_termination_head_is_fitted_on_the_terminated_flag_and_v_only_trains_t
     out["loss_termination"].backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.value_network.termination_head.parameters())
     assert all(p.grad is None for p in loss.value_network.value_head.parameters())
+
+
+def test_a_log_scale_v_is_fitted_on_log_targets_while_the_targets_stay_linear():
+    from ldm_rl.planning.lookahead import lookahead
+    from ldm_rl.planning.sampling import sample_candidates
+
+    q, dynamics, _ = tiny_networks(0)
+    torch.manual_seed(5)
+    value = build_value_network("lite", max_height=MAX_HEIGHT, width=0.125, value_log_floor=0.01)
+    loss = LookaheadLoss(q, dynamics, value, gamma=0.9, num_target_candidates=3, chunk_size=5, value_on_prediction=False,
+                         target_range=(0.0, 1.0))
+    terminated = torch.tensor([[True], [False], [False], [True]])
+    batch = transitions(4, terminated=terminated)
+    batch["next", "reward"] = torch.tensor([[0.5], [0.0], [0.0], [0.0]])  # a terminal row below the floor: log(ε)
+    _, y_v = loss.targets(batch)
+    # the bootstrap reads V on the linear scale: exp of the head, maximised over the target proposals
+    live = torch.tensor([1, 2])
+    state = [batch["next", key][live] for key in ("heightmap", "in_hand", "holding")]
+    with torch.no_grad(), loss.target_networks():
+        q_map = loss.q_network.eval()(*state)
+        candidates = sample_candidates(q_map, 3, mode="argmax", tau=1.0, beta=1.0, sigma=2.0, sigma_rot=1.0)
+        values = lookahead(loss.dynamics.eval(), loss.value_network.eval(), *state, candidates, chunk_size=5).values
+    torch.testing.assert_close(y_v[live], 0.9 * values.amax(1, keepdim=True))
+    assert (values > 0).all() and y_v[0] == 0.5 and y_v[3] == 0.0
+    # V's Huber and the priorities compare log V with log(max(y_V, ε))
+    out = loss(batch)
+    with torch.no_grad():
+        v_now = loss.value_network.train()(batch["next", "heightmap"], batch["next", "in_hand"])
+    fitted = y_v.clamp_min(0.01).log()
+    torch.testing.assert_close(out["loss_value"], torch.nn.functional.smooth_l1_loss(v_now.log(), fitted))
+    torch.testing.assert_close(batch["td_error"], (v_now.log() - fitted).abs().reshape(-1))
+    out["loss_value"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.value_network.value_head.parameters())
+    # the same network on the linear scale is fitted on y_V itself
+    linear = LookaheadLoss(q, dynamics, build_value_network("lite", max_height=MAX_HEIGHT, width=0.125), gamma=0.9,
+                           num_target_candidates=3, chunk_size=5, value_on_prediction=False)
+    assert linear.value_scale.log_floor is None and loss.value_scale.log_floor == 0.01

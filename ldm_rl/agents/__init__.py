@@ -96,7 +96,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
                                 head_channels=agent_cfg.get("q_head_channels"),
                                 architecture=str(agent_cfg.get("q_architecture") or "fcn"), **common)
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"),
-                                        termination_head=bool(agent_cfg.get("termination_head", False)), **common)
+                                        termination_head=bool(agent_cfg.get("termination_head", False)),
+                                        value_log_floor=agent_cfg.get("value_log_floor"), **common)
     planner = _ldm_planner(cfg["planner"], q_network, dynamics, value_network, gamma=float(agent_cfg["gamma"]))
     loss = LookaheadLoss(
         q_network, dynamics, value_network,

@@ -17,6 +17,16 @@ agent's planner scores predicted states, and a terminal one it cannot recognise 
 fallen) is scored as if the episode went on; the termination model is what world-model agents learn beside the
 reward for that reason (Dreamer's continue predictor). :meth:`heads` gives ``(W, R, T logit)`` for fitting.
 
+Option ``value_log_floor`` ε in (0, 1) (not in the reference): the value head predicts ``log V`` and V is its
+exponential, positive; the head's last bias starts at ``log ε`` so that V starts near ε, as the plain head starts
+near 0. Every reader of V (planners, targets, clamps) sees it on the linear scale as before; only the fit changes:
+the loss regresses ``log V`` on ``log(max(y, ε))`` (:class:`~ldm_rl.objectives.LookaheadLoss`), so an error counts
+by its ratio to the return, not by its size. A terminal-reward task's states far from the end are worth ``≈ γᵏ·R``:
+on the linear scale their differences (the pile a place leaves, worth 0.05 at the end of a bin-packing episode, is
+0.05·γᵏ before it) are orders of magnitude below the fit's error on the states near the end; on the log scale
+every state's differences are ratios alike (the reasoning of ``q_log_floor`` for Q). Not combined with
+``termination_head`` (a composed V has no log head).
+
 Parameters: 24,801,418 at ``width=1`` (scene 1,213,760; hand 296,256; each head 11,645,701), exactly the
 reference's. Inputs are heights in metres, encoded as ``heights_to_classes(h) / (K − 1)``
 (:func:`blocks.encode_heights`). On CPU without gradients, large batches run in chunks of ``CHUNK`` states
@@ -53,13 +63,23 @@ class VCNN(nn.Module):
         num_classes: K depth classes of the input quantisation.
         width: channel multiplier (1.0 = the reference).
         termination_head: add the termination head and compose V from it (see the module docstring).
+        value_log_floor: None (the value head is V) or ε in (0, 1): the value head is ``log V`` (see the module
+            docstring); the floor is the smallest return the fit tells apart.
     """
 
     CHUNK = 16  # states per pass without gradients (measured: 64 a pass is ~2x slower per state)
 
     def __init__(self, max_height: float, num_classes: int = 21, width: float = 1.0,
-                 termination_head: bool = False) -> None:
+                 termination_head: bool = False, value_log_floor: float | None = None) -> None:
         super().__init__()
+        if value_log_floor is not None and (isinstance(value_log_floor, bool) or not isinstance(value_log_floor, (int, float))
+                                            or not 0 < value_log_floor < 1):
+            raise ValueError(f"value_log_floor must be null (V on the linear scale) or a number in (0, 1) (the smallest "
+                             f"return the log scale tells apart), got {value_log_floor!r}")
+        if value_log_floor is not None and termination_head:
+            raise ValueError(f"value_log_floor={value_log_floor} cannot be combined with termination_head=True "
+                             "(a composed V = T·R + (1 − T)·W has no log head); set one of them off")
+        self.value_log_floor = None if value_log_floor is None else float(value_log_floor)
         encode_heights(torch.zeros(1), max_height, num_classes)  # validates max_height and num_classes
         if not isinstance(width, (int, float)) or isinstance(width, bool) or not (width > 0 and math.isfinite(width)):
             raise ValueError(f"width must be a positive number, got {width!r}")
@@ -78,6 +98,8 @@ class VCNN(nn.Module):
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, a=LEAKY_SLOPE, mode="fan_out", nonlinearity="leaky_relu")
+        if self.value_log_floor is not None:  # V starts near the floor, as the linear head starts near 0
+            nn.init.constant_(self.value_head[-1].bias, math.log(self.value_log_floor))
 
     @staticmethod
     def _head(in_channels: int, ch) -> nn.Sequential:
@@ -123,18 +145,21 @@ class VCNN(nn.Module):
         return ends * reward + (1.0 - ends) * going_on
 
     def heads(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The raw heads in one trunk pass: ``(value head, reward head)``, and with ``termination_head`` the
+        """The heads in one trunk pass: ``(value head, reward head)``, and with ``termination_head`` the
         termination logit third; each ``[*B, 1]``. The value head is V itself without the termination head, the
-        value of going on ``W`` with it."""
+        value of going on ``W`` with it; with ``value_log_floor`` it is the exponential of the head's output."""
         heads = (self.value_head, self.reward_head)
-        return tuple(self._run(heightmap, in_hand, heads if self.termination_head is None
-                               else heads + (self.termination_head,)))
+        out = self._run(heightmap, in_hand, heads if self.termination_head is None else heads + (self.termination_head,))
+        if self.value_log_floor is not None:
+            out[0] = out[0].exp()
+        return tuple(out)
 
     def forward(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> torch.Tensor:
         """``heightmap [*B, 1, 128, 128]``, ``in_hand [*B, 1, 24, 24]`` float metres -> V ``[*B, 1]`` float32."""
-        if self.termination_head is None:
-            return self._run(heightmap, in_hand, (self.value_head,))[0]
-        return self.compose(*self.heads(heightmap, in_hand))
+        if self.termination_head is not None:
+            return self.compose(*self.heads(heightmap, in_hand))
+        value = self._run(heightmap, in_hand, (self.value_head,))[0]
+        return value if self.value_log_floor is None else value.exp()
 
     def value_and_reward(self, heightmap: torch.Tensor, in_hand: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """As :meth:`forward`, -> (V ``[*B, 1]``, reward of being in the state ``[*B, 1]``); one shared trunk pass."""
@@ -143,8 +168,9 @@ class VCNN(nn.Module):
 
 
 def build_value_network(preset: str, *, max_height: float, num_classes: int = 21, width: float | None = None,
-                        termination_head: bool = False) -> VCNN:
+                        termination_head: bool = False, value_log_floor: float | None = None) -> VCNN:
     """A :class:`VCNN` at a preset width (``V_PRESETS``); ``width`` overrides the preset's."""
     if preset not in V_PRESETS:
         raise ValueError(f"unknown value network preset {preset!r}; expected one of {sorted(V_PRESETS)}")
-    return VCNN(max_height, num_classes, V_PRESETS[preset] if width is None else width, termination_head)
+    return VCNN(max_height, num_classes, V_PRESETS[preset] if width is None else width, termination_head,
+                value_log_floor)

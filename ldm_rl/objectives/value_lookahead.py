@@ -24,7 +24,9 @@ planned in one batched pass (``lookahead``), terminal transitions skipped. Targe
 updater (``HardUpdate``). Predictions for targets run in eval mode without gradients.
 
 Priorities (reference): ``td_error = |V(s') − y_V|`` per sample, written into the batch under the
-``priority`` key; losses are Huber (smooth L1) weighted by ``priority_weight`` when present.
+``priority`` key; losses are Huber (smooth L1) weighted by ``priority_weight`` when present. With a V on the log
+scale (``VCNN(value_log_floor=ε)``, not in the paper) V's Huber and ``td_error`` read ``log V`` against
+``log(max(y_V, ε))``; the targets themselves, their clamps and bounds, and every planner stay on the linear scale.
 """
 
 from __future__ import annotations
@@ -232,6 +234,7 @@ class LookaheadLoss(TransitionLoss):
     ) -> None:
         super().__init__()
         self.q_scale = QScale(q_log_floor)
+        self.value_scale = QScale(getattr(value_network, "value_log_floor", None))
         self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows, expert_margin_temperature)
         if isinstance(target_uncertainty_penalty, bool) or not isinstance(target_uncertainty_penalty, (int, float)) \
                 or not target_uncertainty_penalty >= 0:
@@ -421,6 +424,11 @@ class LookaheadLoss(TransitionLoss):
         loss = F.smooth_l1_loss(q_pred, self.q_scale.encode(values.reshape(-1, 1)), reduction="none")
         return (loss * weight.index_select(0, rows).repeat_interleave(m, 0)).mean()
 
+    def _fitted_value(self, value: torch.Tensor) -> torch.Tensor:
+        """V ``[B, 1]`` on the scale its loss reads: itself, or ``log V`` for a log-scale V (whose V = exp(head) > 0;
+        the clamp only guards an exponential that underflowed)."""
+        return value if self.value_scale.log_floor is None else value.clamp_min(torch.finfo(value.dtype).tiny).log()
+
     def _draw_augmentation(self, batch: int, device):
         """:func:`draw_value_augmentation` of this loss's ``value_augmentation``, ``value_shift`` and raise."""
         return draw_value_augmentation(self.value_augmentation, batch, shift=self.value_shift,
@@ -436,6 +444,12 @@ class LookaheadLoss(TransitionLoss):
 
         def huber(pred, target):
             return (F.smooth_l1_loss(pred, target, reduction="none") * weight).mean()
+
+        fitted_target = self.value_scale.encode(v_target)
+
+        def value_huber(value):
+            """V's Huber on its fitted scale (log V against log(max(y_V, ε)) with a log-scale V)."""
+            return huber(self._fitted_value(value), fitted_target)
 
         state = [tensordict.get(key) for key in (k.heightmap, k.in_hand, k.holding)]
         q_pred = self.q_network.action_values(*state, tensordict.get(k.action)).reshape(-1, 1)
@@ -455,15 +469,15 @@ class LookaheadLoss(TransitionLoss):
             return self.value_network.compose(going_on, r.detach(), logit.detach()), r, (bce * weight).mean()
 
         v_real, r_real, loss_termination = fitted(augmented(next_heightmap))
-        loss_value, loss_reward = huber(v_real, v_target), huber(r_real, reward)
+        loss_value, loss_reward = value_huber(v_real), huber(r_real, reward)
         if self.value_on_prediction:
             predicted = predicted_next_state(self.dynamics, tensordict, logits_key=k.next_logits,
                                              state_keys=(k.heightmap, k.in_hand, k.holding, k.action))
             v_pred, r_pred, bce_pred = fitted(augmented(predicted.heightmap))
-            loss_value = loss_value + huber(v_pred, v_target)
+            loss_value = loss_value + value_huber(v_pred)
             loss_reward = loss_reward + huber(r_pred, reward)
             loss_termination = None if bce_pred is None else loss_termination + bce_pred
-        td_error = (v_real.detach() - v_target).abs().reshape(-1)
+        td_error = (self._fitted_value(v_real.detach()) - fitted_target).abs().reshape(-1)
         tensordict.set(k.priority, td_error)
         loss_q = huber(q_pred, self.q_scale.encode(q_target))
         if fit is not None:
