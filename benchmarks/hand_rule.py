@@ -57,7 +57,8 @@ def model_holding(checkpoint: str, td, rule: HandStateRule) -> torch.Tensor:
     from ldm_rl.agents import load_agent
 
     agent, _ = load_agent(checkpoint)
-    model = next(m for m in agent.modules() if isinstance(m, DynamicsModel))
+    # the world model the greedy decisions plan with: the averaged copy under agent.greedy_ema_decay, else the online one
+    model = next(m for m in agent.greedy_policy.modules() if isinstance(m, DynamicsModel))
     model.hand_rule = rule
     out = []
     with torch.no_grad():
