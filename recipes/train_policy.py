@@ -43,6 +43,9 @@ TRANSITION_KEYS = ("heightmap", "in_hand", "holding", "action",
 log = logging.getLogger("train_policy")
 BEST_NAME = "best_policy.pt"
 CURVE_FIELDS = ("updates", "episodes", "env_steps", "wall_s", "success_rate", "ci_low", "ci_high", "mean_length")
+# bin packing's evaluations also score the packs (ldm_rl.envs.tasks.bin_packing.packing_scores): the pile and the
+# returns under ours and the authors' reward, which the paper plots over training (success_rate is the packed fraction)
+PACKING_FIELDS = ("mean_pile_top", "mean_return", "mean_return_authors", "mean_blocks_in_bin")
 
 
 def expert_episodes(cfg: DictConfig) -> list:
@@ -70,16 +73,19 @@ def updates_due(env_steps: int, updates_per_step: float) -> int:
 
 
 def write_curve(rows: list[dict], out_dir, title: str) -> None:
-    """curve.csv and learning_curve.png (``ldm_rl.plots.plot_learning_curve``), rewritten at every evaluation."""
+    """curve.csv and learning_curve.png (``ldm_rl.plots.plot_learning_curve``), rewritten at every evaluation.
+    Bin packing's rows add :data:`PACKING_FIELDS` (cells left empty in rows written before them, and for the pile
+    of an evaluation that packed nothing)."""
     import csv
 
     from ldm_rl.plots import PlotDependencyError, plot_learning_curve
     from ldm_rl.run.outputs import atomic_path
 
+    fields = CURVE_FIELDS + (PACKING_FIELDS if any(PACKING_FIELDS[0] in row for row in rows) else ())
     with atomic_path(out_dir / "curve.csv") as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CURVE_FIELDS)
+        writer = csv.DictWriter(f, fieldnames=fields, restval="")
         writer.writeheader()
-        writer.writerows({k: row[k] for k in CURVE_FIELDS} for row in rows)
+        writer.writerows({k: "" if row.get(k) is None else row[k] for k in fields if k in row} for row in rows)
     try:
         plot_learning_curve(rows, out_dir / "learning_curve.png", title=f"Greedy success rate: {title}")
     except PlotDependencyError as err:  # say it once per run
@@ -117,6 +123,7 @@ def train(cfg: DictConfig) -> dict:
     from ldm_rl.envs import make_env_from_config
     from ldm_rl.collectors import EpisodeAssembler, TaskEnvFactory, collected_steps, make_collector, shutdown_collector
     from ldm_rl.evaluation import episode_record, evaluate_policy, is_bin_packing, packing_line, packing_report
+    from ldm_rl.envs.tasks.bin_packing import packing_scores
     from ldm_rl.models.compile import compile_inference
     from ldm_rl.seeds import evaluation_scenes, held_out_scenes, training_scenes
     from ldm_rl.run.progress import progress_bar
@@ -161,21 +168,30 @@ def train(cfg: DictConfig) -> dict:
 
     best = {"success_rate": -1.0}  # the best in-training evaluation so far (schedule.keep_best)
 
-    def evaluate(episodes: int, on_episode=None) -> dict:
+    packing = is_bin_packing(eval_env)
+
+    def evaluate(episodes: int) -> tuple[dict, list[float], list[int]]:
+        """One greedy evaluation, appended to the curve: ``(row, returns, blocks in the bin)``, one per episode
+        (bin packing's blocks; ``[]`` for the other tasks)."""
+        returns: list[float] = []  # bin packing's pile top is read from the reward
+        blocks: list[int] = []
         result = evaluate_policy(eval_env, agent.greedy_policy, episodes, seed=evaluation_scenes(cfg.seed), progress=bool(s.progress),
-                                 on_episode=on_episode)
+                                 on_episode=episode_record(eval_env, returns, blocks if packing else None))
         scores = {("eval_episodes" if key == "episodes" else key): value for key, value in result.as_dict().items()}
         row = {"updates": agent.updates, **counters, "wall_s": time.perf_counter() - start, **scores}
+        if packing:
+            row.update({key: value for key, value in packing_scores(returns, blocks).items() if key in PACKING_FIELDS})
         curve.append(row)
         if s.keep_best and row["success_rate"] > best["success_rate"]:  # the earliest of equal scores stays
             best.update(row)
             save_checkpoint(out_dir / BEST_NAME, {"agent": agent.policy_state_dict(), "evaluation": row}, meta=meta)
         write_curve(curve, out_dir, f"{agent.name} agent, {task}, seed {cfg.seed}")
         if logger is not None:
-            logger.log_metrics({f"eval/{key}": row[key] for key in ("success_rate", "ci_low", "ci_high", "mean_length")},
-                               step=counters["episodes"])
-        log.info(f"[{row['wall_s'] / 60:6.1f} min] updates {agent.updates:6d}  episodes {counters['episodes']:5d}  eval {result}")
-        return row
+            logged = ("success_rate", "ci_low", "ci_high", "mean_length") + (PACKING_FIELDS if packing else ())
+            logger.log_metrics({f"eval/{key}": row[key] for key in logged if row[key] is not None}, step=counters["episodes"])
+        pile = f"; {packing_line({'packed': row['success_rate'], **row})}" if packing else ""
+        log.info(f"[{row['wall_s'] / 60:6.1f} min] updates {agent.updates:6d}  episodes {counters['episodes']:5d}  eval {result}{pile}")
+        return row, returns, blocks
 
     def save() -> None:
         """At an episode boundary: weights, optimisers, schedules, replay, every RNG, counters, curve.
@@ -291,10 +307,7 @@ def train(cfg: DictConfig) -> dict:
                 break
     bar.close()
     shutdown_collector(collector)
-    packing = is_bin_packing(eval_env)
-    final_returns: list[float] = []  # per episode: bin packing's report reads the pile top from the reward
-    final_blocks: list[int] = []
-    final = evaluate(int(s.final_eval_episodes), episode_record(eval_env, final_returns, final_blocks if packing else None))
+    final, final_returns, final_blocks = evaluate(int(s.final_eval_episodes))
     summary = {"agent": agent.name, "task": cfg.env.id, "num_objects": int(cfg.env.num_objects), "seed": int(cfg.seed),
                "preset": str(cfg.agent.preset or cfg.model.preset), **{k: final[k] for k in CURVE_FIELDS},
                "episodes_final_eval": final["eval_episodes"], "replay_bytes_per_transition": replay.bytes_per_transition()}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import os
@@ -453,6 +454,11 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     packing = final["packing"]  # the agent's and the scripted expert's packing report on the same scene
     assert packing["episodes"] == packing["expert"]["episodes"] == 1
     assert packing["packed"] == final["success_rate"] and 0.0 <= packing["expert"]["packed"] <= 1.0
+    # every evaluation's row of curve.csv scores the packs too; the final one is the report's
+    with open(tmp_path / "curve.csv", newline="") as f:
+        last = list(csv.DictReader(f))[-1]
+    assert float(last["mean_return"]) == packing["mean_return"] and last["mean_pile_top"] == ("" if packing["mean_pile_top"] is None else str(packing["mean_pile_top"]))
+    assert float(last["mean_blocks_in_bin"]) == packing["mean_blocks_in_bin"]
     assert 0 <= packing["mean_blocks_in_bin"] <= 8 and 0 <= packing["expert"]["mean_blocks_in_bin"] <= 8
     # 3 primitives cannot pack 8 blocks; the expert's first place puts its first block in the bin
     assert packing["expert"]["mean_blocks_in_bin"] == 1 and packing["expert"]["packed"] == 0

@@ -282,3 +282,30 @@ def test_the_short_try_runs_the_shipped_cpu_networks_without_pretraining():
     s = cfg.schedule
     assert (s.pretrain_updates, s.total_episodes, s.max_wall_clock_s, s.keep_best) == (0, 3, None, False)
     assert (s.eval_episodes, s.final_eval_episodes) == (5, 10)
+
+
+def test_a_curve_resumed_across_the_packing_columns_keeps_its_older_rows_with_empty_cells(tmp_path):
+    import csv
+
+    sys.path.insert(0, str(ROOT / "recipes"))
+    try:
+        from train_policy import CURVE_FIELDS, PACKING_FIELDS, write_curve
+    finally:
+        sys.path.remove(str(ROOT / "recipes"))
+    plain = {"updates": 0, "episodes": 0, "env_steps": 0, "wall_s": 1.0, "success_rate": 0.0, "ci_low": 0.0,
+             "ci_high": 0.5, "mean_length": 20.0}
+    write_curve([plain], tmp_path, "a task without packs")
+    assert (tmp_path / "curve.csv").read_text().splitlines()[0] == ",".join(CURVE_FIELDS)
+    # a bin-packing run written before the packing columns, resumed: its old row, an evaluation that packed nothing
+    # (no pile), one that packed
+    nothing = {**plain, "updates": 250, "mean_pile_top": None, "mean_return": 0.0, "mean_return_authors": 0.0,
+               "mean_blocks_in_bin": 3.5}
+    packed = {**plain, "updates": 500, "success_rate": 0.5, "mean_pile_top": 0.12, "mean_return": 0.125,
+              "mean_return_authors": -1.0, "mean_blocks_in_bin": 7.5}
+    write_curve([plain, nothing, packed], tmp_path, "bin packing")
+    with open(tmp_path / "curve.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == [*CURVE_FIELDS, *PACKING_FIELDS]
+    assert [row["mean_pile_top"] for row in rows] == ["", "", "0.12"]
+    assert [row["mean_blocks_in_bin"] for row in rows] == ["", "3.5", "7.5"]
+    assert rows[2]["mean_return_authors"] == "-1.0" and rows[0]["success_rate"] == "0.0"
