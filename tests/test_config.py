@@ -557,7 +557,8 @@ def _differences(a, b, prefix=""):
     # and, for the ldm agent, Q's scale and its fit on its own proposals (conf/experiment_agent/)
     ("curves_bin_packing", {"agent.gamma", "schedule.total_episodes", "agent.q_log_floor", "agent.q_proposal_fit",
                             "agent.q_pick_min_height", "model.hand_rule.kind", "env.failed_pick_memory",
-                            "agent.expert_margin_weight", "agent.q_frame_pad", "planner.greedy_uncertainty_penalty"}),
+                            "agent.expert_margin_weight", "agent.q_frame_pad", "agent.expert_margin_temperature",
+                            "planner.greedy_uncertainty_penalty"}),
 ])
 def test_a_task_preset_differs_from_block_stackings_only_where_it_says(preset, task_keys):
     """The comparison's presets share curves_block_stacking's settings; a preset changes only the env and the
@@ -592,8 +593,9 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     # the bottles' and bin packing's pick mask reaches every agent with a Q network (rs refuses the key)
     assert bottles.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
     assert cfg.agent.get("q_pick_min_height", 0.0) == (0.0 if agent == "rs" else 0.015)
-    # and its expert margin read in 32 px padded frames (every Q agent; rs has no Q and refuses both keys)
+    # and its expert margin, its soft max, read in 32 px padded frames (every Q agent; rs has no Q and refuses the keys)
     assert cfg.agent.get("expert_margin_weight", 0.0) == (0.0 if agent == "rs" else 1.0)
+    assert cfg.agent.get("expert_margin_temperature", 0.0) == (0.0 if agent == "rs" else 0.02)
     assert cfg.agent.get("q_frame_pad", 0) == (0 if agent == "rs" else 32)
     assert bottles.agent.get("expert_margin_weight", 0.0) == house.agent.get("q_frame_pad", 0) == 0
     # bin packing's hand-state rule is the task's (experiment file), the other presets keep the reference's
