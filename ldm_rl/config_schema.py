@@ -472,6 +472,9 @@ class AgentConfig:
                                             "log(max(target, this)); null = V itself")
     q_proposal_fit: int = spec(0, ge=0, doc="ldm: target proposals per next state Q is also fitted on, toward "
                                "V⁻ of their prediction (0 = off)")
+    value_margin_weight: float = spec(0.0, ge=0, doc="ldm: λ of the large-margin term on V(f(s, a)) of the expert rows: "
+                                      "the expert's outcome above Q's proposals' (0 = off)")
+    value_margin: float = spec(0.01, gt=0, doc="ldm: l, the lead the expert's predicted outcome keeps in V (V's fitted units)")
     # the baselines' own keys (null unless that agent is chosen; checked below)
     object_height_threshold: Optional[float] = spec(None, gt=0, le=1, doc="rs: metres above which a pixel is an object")
     object_dilation: Optional[int] = spec(None, ge=0, le=64, doc="rs: pixels the object mask grows by")
@@ -510,6 +513,9 @@ class AgentConfig:
             elif node.get("termination_head"):
                 found.append(f"{prefix}value_log_floor={_show(node.value_log_floor)} cannot be combined with "
                              f"{prefix}termination_head=true (a composed V has no log head); set one of them off")
+        if node.get("value_margin_weight") and node.name != "ldm":
+            found.append(f"{prefix}value_margin_weight={_show(node.value_margin_weight)} is set but only agent=ldm "
+                         f"decides by V(f(s, a)) (agent.name={node.name}); set it to 0")
         if node.get("termination_head") and node.name != "ldm":
             found.append(f"{prefix}termination_head=true is set but only agent=ldm uses it (agent.name={node.name})")
         if node.get("greedy_ema_tail") is not None and node.get("greedy_ema_decay") is None:

@@ -536,6 +536,7 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
         "planner.pick_rotations=2", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
         "planner.revisits_last=true", "env.scene_memory=4", "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1",
         "model.height_anchor=0.08", "agent.expert_margin_weight=0.1", "agent.value_log_floor=0.01",
+        "agent.value_margin_weight=0.5",
         f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2

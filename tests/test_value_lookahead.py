@@ -424,3 +424,69 @@ def test_a_log_scale_v_is_fitted_on_log_targets_while_the_targets_stay_linear():
     linear = LookaheadLoss(q, dynamics, build_value_network("lite", max_height=MAX_HEIGHT, width=0.125), gamma=0.9,
                            num_target_candidates=3, chunk_size=5, value_on_prediction=False)
     assert linear.value_scale.log_floor is None and loss.value_scale.log_floor == 0.01
+
+
+def _expert_batch(n=5, expert=(True, False, True, True, False)):
+    batch = transitions(n)
+    batch["is_expert"] = torch.tensor(expert)
+    return batch
+
+
+def _lookahead_scores(loss, batch, rows, actions):
+    """V (train mode, as the loss runs it) of the online LDM's eval-mode predictions of ``actions`` [n, m, 3]."""
+    state = [batch[key][rows] for key in ("heightmap", "in_hand", "holding")]
+    m = actions.shape[1]
+    with torch.no_grad():
+        predicted = loss.dynamics.eval().predict(*(x.repeat_interleave(m, 0) for x in state), actions.reshape(-1, 3))
+        loss.dynamics.train()
+        return loss.value_network.train()(predicted.heightmap, predicted.in_hand).reshape(-1, m)
+
+
+def _proposals(loss, batch, rows):
+    from ldm_rl.planning.sampling import sample_candidates
+
+    state = [batch[key][rows] for key in ("heightmap", "in_hand", "holding")]
+    with torch.no_grad():
+        q_map = loss.q_network.eval()(*state)
+        loss.q_network.train()
+    return sample_candidates(q_map, loss.num_target_candidates, **loss.target_proposal)
+
+
+def test_the_value_margin_ranks_the_experts_predicted_outcome_above_qs_proposals():
+    loss = make_loss(value_margin_weight=0.5, value_margin=0.05, expert_margin_rows=2)
+    plain = make_loss()
+    batch = _expert_batch()
+    rows = torch.tensor([0, 2])  # the first expert_margin_rows = 2 expert rows
+    proposals = _proposals(loss, batch, rows)
+    # in row 0 the expert's action is the proposal V rates best (no lead is asked of it), in row 2 another pose
+    best = int(_lookahead_scores(loss, batch, rows[:1], proposals[:1]).argmax())
+    batch["action"][0] = proposals[0, best]
+    actions = torch.cat((batch["action"][rows].unsqueeze(1).long(), proposals), 1)
+    scores = _lookahead_scores(loss, batch, rows, actions)  # [2, 1 + N]: the expert's outcome first
+    lead = torch.full_like(scores[:, 1:], 0.05)
+    lead[0, best] = 0.0
+    expected = ((scores[:, 1:] + lead).amax(1) - scores[:, 0]).clamp_min(0).mean()
+    asked_of_all = ((scores[:, 1:] + 0.05).amax(1) - scores[:, 0]).clamp_min(0).mean()
+    assert not torch.isclose(expected, asked_of_all)  # the expert's own pose among the proposals changes the term
+    out = loss(batch.clone())
+    torch.testing.assert_close(out["value_margin"], expected)
+    torch.testing.assert_close(out["loss_value"], plain(batch.clone())["loss_value"] + 0.5 * expected)
+    assert "value_margin" in loss.out_keys and "value_margin" not in plain.out_keys
+    # the margin trains V alone: Q, which proposed, and the LDM, which predicted, get no gradient from it
+    loss.zero_grad()
+    loss.value_margin_loss(batch.clone()).backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.value_network.parameters())
+    assert all(p.grad is None for p in [*loss.q_network.parameters(), *loss.dynamics.parameters()])
+
+
+def test_the_value_margin_is_zero_without_expert_rows_and_needs_the_flag():
+    loss = make_loss(value_margin_weight=1.0)
+    assert loss.value_margin_loss(_expert_batch(expert=(False,) * 5)) == 0
+    with pytest.raises(KeyError, match="value_margin_weight > 0 needs 'is_expert' in the batch"):
+        loss(transitions(3))
+    assert make_loss().value_margin_loss(transitions(3)) is None  # off: no flag needed, nothing computed
+    for kwargs, message in (({"value_margin_weight": -1}, "value_margin_weight must be a number >= 0 .* got -1"),
+                            ({"value_margin_weight": True}, "value_margin_weight must be a number >= 0 .* got True"),
+                            ({"value_margin": 0}, r"value_margin must be a number > 0 \(V's fitted units\), got 0")):
+        with pytest.raises(ValueError, match=message):
+            make_loss(**kwargs)

@@ -119,6 +119,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
         target_uncertainty_penalty=float(agent_cfg.get("target_uncertainty_penalty") or 0.0),
         q_log_floor=agent_cfg.get("q_log_floor"),
         q_proposal_fit=int(agent_cfg.get("q_proposal_fit") or 0),
+        value_margin_weight=float(agent_cfg.get("value_margin_weight") or 0.0),
+        value_margin=float(agent_cfg.get("value_margin") or 0.01),
         **_expert_margin(agent_cfg),
     )
     dynamics_loss = _dynamics_loss(cfg["loss"], dynamics)

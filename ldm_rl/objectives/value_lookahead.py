@@ -182,6 +182,11 @@ class LookaheadLoss(TransitionLoss):
             paper), l, the row cap and the soft max's τ (0 = the hard max) of DQfD's large-margin term on the
             expert rows, added to ``loss_q`` as λ times it and reported as ``expert_margin`` (:meth:`~ldm_rl.objectives.TransitionLoss.expert_margin_loss`): Q, which only
             proposes, learns to rank the expert's pose first. Not in the paper.
+        value_margin_weight, value_margin: λ_V (0 = off, the paper) and l_V (V's fitted units) of the same
+            large-margin term on the scores the agent decides by, ``V(f(s, a))`` (:meth:`value_margin_loss`), on
+            the first ``expert_margin_rows`` expert rows: V learns to rank the predicted outcome of the expert's
+            action above those of Q's proposals. Added to ``loss_value`` as λ_V times it and reported as
+            ``value_margin``. Not in the paper.
     """
 
     @dataclass
@@ -231,8 +236,15 @@ class LookaheadLoss(TransitionLoss):
         expert_margin: float = 0.1,
         expert_margin_rows: int = 4,
         expert_margin_temperature: float = 0.0,
+        value_margin_weight: float = 0.0,
+        value_margin: float = 0.01,
     ) -> None:
         super().__init__()
+        for name, value, ok, want in (("value_margin_weight", value_margin_weight, lambda v: v >= 0, "a number >= 0 (0 = off)"),
+                                      ("value_margin", value_margin, lambda v: v > 0, "a number > 0 (V's fitted units)")):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not ok(value):
+                raise ValueError(f"{name} must be {want}, got {value!r}")
+        self.value_margin_weight, self.value_margin = float(value_margin_weight), float(value_margin)
         self.q_scale = QScale(q_log_floor)
         self.value_scale = QScale(getattr(value_network, "value_log_floor", None))
         self.set_expert_margin(expert_margin_weight, expert_margin, expert_margin_rows, expert_margin_temperature)
@@ -288,7 +300,8 @@ class LookaheadLoss(TransitionLoss):
     def out_keys(self) -> list[str]:
         return ["loss_q", "loss_value", "loss_reward", *(["loss_termination"] if self.termination else []),
                 "q_target", "value_target", "state_value", "td_error",
-                *(["expert_margin"] if self.expert_margin_weight else [])]
+                *(["expert_margin"] if self.expert_margin_weight else []),
+                *(["value_margin"] if self.value_margin_weight else [])]
 
     @contextlib.contextmanager
     def target_networks(self):
@@ -424,6 +437,44 @@ class LookaheadLoss(TransitionLoss):
         loss = F.smooth_l1_loss(q_pred, self.q_scale.encode(values.reshape(-1, 1)), reduction="none")
         return (loss * weight.index_select(0, rows).repeat_interleave(m, 0)).mean()
 
+    def value_margin_loss(self, tensordict: TensorDictBase) -> torch.Tensor | None:
+        """DQfD's large-margin term on the lookahead's scores of the batch's expert rows; None when off.
+
+        For each of the first ``expert_margin_rows`` rows whose ``is_expert`` is set, with ``a_E`` its action and
+        ``a_1 … a_N`` the online Q's proposals at ``s`` (``sample_candidates`` with the target proposal's settings,
+        N = ``num_target_candidates``; eval mode, no gradient), the online LDM predicts every outcome (eval mode, no
+        gradient) and the online V scores them, on its fitted scale: ``max(0, max_i [V(f(s, a_i)) + l·1(a_i ≠ a_E)]
+        − V(f(s, a_E)))``, zero once the expert's outcome leads every proposal's by ``l``. Returns the mean over those
+        rows, ``[]`` float32 (0 without expert rows); the gradient reaches V alone. The TD loss tells V what states
+        are worth on average; this term tells it, on the states the demonstrations come from, that the outcome the
+        expert chose ranks above the ones the agent would pick among. Costs (N + 1) LDM predictions and V passes
+        per row.
+        """
+        if not self.value_margin_weight:
+            return None
+        k = self.tensor_keys
+        flags = tensordict.get(k.is_expert, None)
+        if flags is None:
+            raise KeyError(f"{type(self).__name__} with value_margin_weight > 0 needs {k.is_expert!r} in the batch "
+                           "(FrameReplay samples carry it)")
+        rows = flags.reshape(-1).bool().nonzero().squeeze(1)[: self.expert_margin_rows]
+        if rows.numel() == 0:
+            return tensordict.get(k.heightmap).new_zeros(())
+        heightmap, in_hand = (tensordict.get(key).index_select(0, rows) for key in (k.heightmap, k.in_hand))
+        holding = tensordict.get(k.holding).reshape(-1, 1).bool().index_select(0, rows)
+        expert = tensordict.get(k.action).reshape(-1, 3).long().index_select(0, rows)  # [n, 3]
+        with torch.no_grad(), eval_mode(self.q_network, self.dynamics):
+            q_map = self.q_network(heightmap, in_hand, holding).float()
+            proposals = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)  # [n, N, 3]
+            actions = torch.cat((expert.unsqueeze(1), proposals), 1)  # [n, 1 + N, 3]: the expert's first
+            m = actions.shape[1]
+            predicted = self.dynamics.predict(heightmap.repeat_interleave(m, 0), in_hand.repeat_interleave(m, 0),
+                                              holding.repeat_interleave(m, 0), actions.reshape(-1, 3))
+        values = self._fitted_value(self.value_network(predicted.heightmap, predicted.in_hand).float()).reshape(-1, m)
+        lead = torch.where((proposals == expert.unsqueeze(1)).all(-1), 0.0, self.value_margin)  # [n, N]
+        top = (values[:, 1:] + lead).amax(1)
+        return (top - values[:, 0]).clamp_min(0).mean()
+
     def _fitted_value(self, value: torch.Tensor) -> torch.Tensor:
         """V ``[B, 1]`` on the scale its loss reads: itself, or ``log V`` for a log-scale V (whose V = exp(head) > 0;
         the clamp only guards an exponential that underflowed)."""
@@ -485,9 +536,14 @@ class LookaheadLoss(TransitionLoss):
         margin = self.expert_margin_loss(self.q_network, tensordict)
         if margin is not None:
             loss_q = loss_q + self.expert_margin_weight * margin
+        value_margin = self.value_margin_loss(tensordict)
+        if value_margin is not None:
+            loss_value = loss_value + self.value_margin_weight * value_margin
         out = {"loss_q": loss_q, "loss_value": loss_value, "loss_reward": loss_reward}
         if margin is not None:
             out["expert_margin"] = margin.detach()
+        if value_margin is not None:
+            out["value_margin"] = value_margin.detach()
         if loss_termination is not None:
             out["loss_termination"] = loss_termination
         out.update(q_target=q_target.mean(), value_target=v_target.mean(), state_value=v_real.detach().mean(),
