@@ -86,11 +86,7 @@ class TransitionLoss(LossModule):
         if not self.expert_margin_weight:
             return None
         k = self.tensor_keys
-        flags = tensordict.get(k.is_expert, None)
-        if flags is None:
-            raise KeyError(f"{type(self).__name__} with expert_margin_weight > 0 needs {k.is_expert!r} in the batch "
-                           "(FrameReplay samples carry it)")
-        rows = flags.reshape(-1).bool().nonzero().squeeze(1)[: self.expert_margin_rows]
+        rows = self.expert_rows(tensordict, "expert_margin_weight")
         if rows.numel() == 0:
             return tensordict.get(k.heightmap).new_zeros(())
         state = [tensordict.get(key).index_select(0, rows) for key in (k.heightmap, k.in_hand)]
@@ -108,6 +104,15 @@ class TransitionLoss(LossModule):
         tau = self.expert_margin_temperature
         top = tau * torch.logsumexp(with_margin / tau, 1, keepdim=True) if tau else with_margin.amax(1, keepdim=True)
         return ((top - q_expert).sum() / rows.numel()).reshape(())
+
+    def expert_rows(self, tensordict: TensorDictBase, option: str) -> torch.Tensor:
+        """``[n]`` int64: the first ``expert_margin_rows`` rows of the batch whose ``is_expert`` is set (a margin
+        term's rows); a ``KeyError`` naming ``option`` (the term's switch) when the batch has no such flag."""
+        flags = tensordict.get(self.tensor_keys.is_expert, None)
+        if flags is None:
+            raise KeyError(f"{type(self).__name__} with {option} > 0 needs {self.tensor_keys.is_expert!r} in the batch "
+                           "(FrameReplay samples carry it)")
+        return flags.reshape(-1).bool().nonzero().squeeze(1)[: self.expert_margin_rows]
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass

@@ -453,11 +453,7 @@ class LookaheadLoss(TransitionLoss):
         if not self.value_margin_weight:
             return None
         k = self.tensor_keys
-        flags = tensordict.get(k.is_expert, None)
-        if flags is None:
-            raise KeyError(f"{type(self).__name__} with value_margin_weight > 0 needs {k.is_expert!r} in the batch "
-                           "(FrameReplay samples carry it)")
-        rows = flags.reshape(-1).bool().nonzero().squeeze(1)[: self.expert_margin_rows]
+        rows = self.expert_rows(tensordict, "value_margin_weight")
         if rows.numel() == 0:
             return tensordict.get(k.heightmap).new_zeros(())
         heightmap, in_hand = (tensordict.get(key).index_select(0, rows) for key in (k.heightmap, k.in_hand))
