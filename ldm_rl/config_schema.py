@@ -593,6 +593,7 @@ class PlannerConfig:
     pick_rotations: int = spec(1, ge=1, doc="rotations each pick proposal is scored at (divides env.num_rotations)")
     revisits_last: bool = spec(False, doc="places the LDM predicts to recreate a scene seen with an empty hand this "
                                "episode ranked last (needs env.scene_memory > 0)")
+    q_blend: float = spec(0.0, ge=0.0, le=1.0, doc="w: the choice made on (1 − w)·(V − λ·H) + w·Q(s, a) (0 = V alone)")
     # planner=tree only (conf/planner/tree.yaml sets them; null elsewhere)
     depth: Optional[int] = spec(None, ge=1, doc="primitives looked ahead (tree)")
     branching: Optional[int] = spec(None, ge=1, doc="candidates expanded per node (tree)")
@@ -694,7 +695,7 @@ class TrainPolicyConfig(RunSettings):
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
         for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "pick_outcome",
-                    "pick_rotations", "revisits_last"):  # the LDM agent's alone
+                    "pick_rotations", "revisits_last", "q_blend"):  # the LDM agent's alone
             value = node.planner.get(key)
             if node.agent.name != "ldm" and value and value != "mode" and not (key == "pick_rotations" and value == 1):
                 shown = "true" if value is True else value if isinstance(value, str) else _show(value)
@@ -733,6 +734,7 @@ class PlannerOverrides:
     pick_rotations: Optional[int] = spec(None, ge=1, doc="rotations each pick proposal is scored at")
     revisits_last: Optional[bool] = spec(None, doc="places predicted to recreate a scene seen with an empty hand ranked "
                                          "last (needs scene memory)")
+    q_blend: Optional[float] = spec(None, ge=0.0, le=1.0, doc="w: the choice made on (1 − w)·(V − λ·H) + w·Q(s, a)")
     depth: Optional[int] = spec(None, ge=1, doc="tree: primitives looked ahead")
     branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")
     terminal_reward: Optional[float] = spec(None, gt=0.0, doc="tree: a predicted reward above it ends a branch")

@@ -152,6 +152,49 @@ def test_a_greedy_lambda_acts_in_the_greedy_decisions_alone(nets):
         LookaheadPlanner(q, dynamics, value, greedy_uncertainty_penalty=-1)
 
 
+def test_q_blend_chooses_on_the_mix_of_v_and_q_of_each_candidate(nets):
+    """q_blend w: the greedy choice is the argmax of (1 − w)·V(f(s, a)) + w·Q(s, a) over the same candidates, with Q
+    read by the independent action_values path (and exp'd for a Q fitted on the log scale); w = 1 follows Q's ranking
+    of its own proposals, which here is not V's."""
+    q, dynamics, value = nets
+    rows = torch.arange(3)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
+        candidates = plain["candidate_actions"]
+        s = scenes(3)
+        with torch.no_grad():
+            q_values = q.eval().action_values(s["heightmap"].repeat_interleave(5, 0), s["in_hand"].repeat_interleave(5, 0),
+                                              s["holding"].repeat_interleave(5, 0), candidates.reshape(-1, 3)).reshape(3, 5)
+        for w, floor in ((0.5, None), (1.0, None), (0.5, 0.01)):
+            out = LookaheadPlanner(q, dynamics, value, q_blend=w, q_log_floor=floor, **GREEDY)(batch())
+            assert torch.equal(out["candidate_actions"], candidates)
+            torch.testing.assert_close(out["candidate_values"], plain["candidate_values"])
+            read = q_values.exp() if floor else q_values
+            best = ((1 - w) * plain["candidate_values"] + w * read).argmax(-1)
+            assert torch.equal(out["action"], candidates[rows, best])
+            if w == 1.0:
+                assert torch.equal(best, q_values.argmax(-1))
+                assert not torch.equal(out["action"], plain["action"])  # Q's vote changed a decision
+    for bad in (-0.1, 1.5, True):
+        with pytest.raises(ValueError, match=f"q_blend must be a number in \\[0, 1\\] .*, got {bad!r}"):
+            LookaheadPlanner(q, dynamics, value, q_blend=bad)
+    with pytest.raises(ValueError, match="q_log_floor must be None .* got 0"):
+        LookaheadPlanner(q, dynamics, value, q_log_floor=0)
+
+
+def test_q_blend_keeps_ranked_last_candidates_last_and_drops_those_off_q_s_frame(nets):
+    q, dynamics, value = nets
+    planner = LookaheadPlanner(q, dynamics, value, q_blend=1.0)
+    q_map = torch.zeros(1, 8, 128, 128)
+    q_map[0, 2, 10, 20], q_map[0, 0, 5, 6], q_map[0, 7, 0, 0] = 0.9, 0.3, float("-inf")
+    candidates = torch.tensor([[[10, 20, 2], [5, 6, 0], [1, 1, 1], [0, 0, 7]]])
+    scores = torch.tensor([[float("-inf"), 0.1, 0.2, 0.4]])
+    blended = planner.blend_q(scores, q_map, candidates)
+    torch.testing.assert_close(blended, torch.tensor([[float("-inf"), 0.3, 0.0, float("-inf")]]))  # w = 1: Q, marks kept
+    planner.q_blend = 0.25
+    torch.testing.assert_close(planner.blend_q(scores, q_map, candidates)[0, 1:3], torch.tensor([0.15, 0.15]))
+
+
 def test_rank_empty_picks_last_sets_only_predicted_empty_picks_of_states_with_a_holding_alternative():
     from ldm_rl.planning.planner import rank_empty_picks_last
 
@@ -483,7 +526,7 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     assert played_with(agent, cfg)["planner"] == {"name": "tree", "num_candidates": cfg["planner"]["num_candidates"],
                                                   "uncertainty_penalty": 0.0, "empty_picks_last": False,
                                                   "pick_outcome": "mode", "pick_rotations": 1, "revisits_last": False,
-                                                  "depth": 2, "branching": 3}
+                                                  "q_blend": 0.0, "depth": 2, "branching": 3}
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -501,6 +544,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("planner.greedy_uncertainty_penalty=-2",), "planner.greedy_uncertainty_penalty=-2"),
     (("planner.pick_rotations=3",), r"planner.pick_rotations=3 must divide env.num_rotations=8"),
     (("agent=fcdqn", "planner.pick_rotations=2"), "planner.pick_rotations=2 is set but agent=fcdqn .* only agent=ldm"),
+    (("agent=dynaq", "planner.q_blend=0.5"), "planner.q_blend=0.5 is set but agent=dynaq .* only agent=ldm"),
+    (("planner.q_blend=1.5",), "planner.q_blend=1.5"),
 ])
 def test_option_misuse_is_one_clear_config_error(overrides, message):
     from ldm_rl.config_schema import SCHEMAS, ConfigError, validate_config
@@ -546,26 +591,26 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     assert agent.loss.value_network.value_log_floor == 0.01
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
         "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true",
-        "planner.pick_outcome=expected", "planner.pick_rotations=4", "failed_pick_memory=0",
+        "planner.pick_outcome=expected", "planner.pick_rotations=4", "planner.q_blend=0.5", "failed_pick_memory=0",
         "q_pick_min_height=0.015", "hand_rule=removal",
         f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True,
-                                 "pick_outcome": "expected", "pick_rotations": 4}
+                                 "pick_outcome": "expected", "pick_rotations": 4, "q_blend": 0.5}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015 and result["hand_rule"] == "removal"
     # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
     # an overridden λ is these greedy decisions' λ
     assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "height_anchor": 0.08, "planner": {
         "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected",
-        "pick_rotations": 4, "revisits_last": True}}
+        "pick_rotations": 4, "revisits_last": True, "q_blend": 0.5}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
     assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
     assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
         "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "pick_outcome": "mode",
-        "pick_rotations": 2, "revisits_last": True, "depth": 2, "branching": 2}
+        "pick_rotations": 2, "revisits_last": True, "q_blend": 0.0, "depth": 2, "branching": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):

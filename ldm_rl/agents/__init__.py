@@ -40,9 +40,11 @@ def _tree_planner():
 PLANNERS: dict[str, Callable[[], type]] = {"diverse": _diverse_planner, "tree": _tree_planner}
 
 
-def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_network, *, gamma: float):
+def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_network, *, gamma: float,
+                 q_log_floor: float | None = None):
     """The planner named by ``planner.name`` (configs written before the key existed: ``diverse``); a planner
-    that backs up returns (``tree``) gets the agent's ``gamma`` unless its config sets one."""
+    that backs up returns (``tree``) gets the agent's ``gamma`` unless its config sets one, and every planner the
+    scale Q is fitted on (``agent.q_log_floor``, which ``planner.q_blend`` reads Q back with)."""
     kwargs = _plain(planner_cfg)
     name = kwargs.pop("name", "diverse")
     if name not in PLANNERS:
@@ -56,7 +58,7 @@ def _ldm_planner(planner_cfg: Mapping[str, Any], q_network, dynamics, value_netw
         kwargs.setdefault("gamma", gamma)
     else:
         kwargs = {key: value for key, value in kwargs.items() if key not in TREE_KEYS}
-    return PLANNERS[name]()(q_network, dynamics, value_network, **kwargs)
+    return PLANNERS[name]()(q_network, dynamics, value_network, q_log_floor=q_log_floor, **kwargs)
 
 
 def _dynamics_loss(loss_cfg: Mapping[str, Any], dynamics):
@@ -98,7 +100,8 @@ def build_ldm_agent(cfg: Mapping[str, Any], max_height: float):
     value_network = build_value_network(preset, width=agent_cfg.get("value_width"),
                                         termination_head=bool(agent_cfg.get("termination_head", False)),
                                         value_log_floor=agent_cfg.get("value_log_floor"), **common)
-    planner = _ldm_planner(cfg["planner"], q_network, dynamics, value_network, gamma=float(agent_cfg["gamma"]))
+    planner = _ldm_planner(cfg["planner"], q_network, dynamics, value_network, gamma=float(agent_cfg["gamma"]),
+                           q_log_floor=agent_cfg.get("q_log_floor"))
     loss = LookaheadLoss(
         q_network, dynamics, value_network,
         gamma=float(agent_cfg["gamma"]),

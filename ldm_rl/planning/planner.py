@@ -24,6 +24,8 @@ the paper's mode calls a pick that holds one time in three "no change". ``pick_r
 proposal is also scored at K − 1 more rotations of its pixel, evenly spaced over π
 (:func:`~ldm_rl.planning.sampling.sweep_rotations`), so the LDM — not Q alone — chooses how the fingers close on
 what Q points at (N·K candidates; a place decision's N proposals are scored once and repeated K times).
+``q_blend`` w > 0: the choice is made on ``(1 − w)·score + w·Q(s, a)``, the model-based estimate of each candidate's
+return averaged with Q's model-free estimate of the same return (:meth:`LookaheadPlanner.blend_q`).
 
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
@@ -139,6 +141,11 @@ class LookaheadPlanner(StatePolicy):
         pick_rotations: K, rotations each pick proposal is scored at (an int dividing Q's R; 1 = the paper).
         revisits_last: places predicted to recreate a scene of ``visited_scenes`` are scored ``-inf`` where another
             candidate is not (:func:`rank_revisits_last`; False = the paper; without the key it does nothing).
+        q_blend: w in [0, 1]: the choice is made on ``(1 − w)·score + w·Q(s, a)`` (:meth:`blend_q`), the model-based
+            estimate of each candidate's return averaged with Q's model-free one (0 = the paper; 1 = Q's ranking of
+            its own proposals, which keep their ``-inf`` marks).
+        q_log_floor: None (Q is fitted on returns) or ε: Q is fitted on ``log(max(y, ε))`` (the agent's
+            ``q_log_floor``); ``q_blend`` reads it back as ``exp(Q)``.
 
     Reads ``heightmap``, ``in_hand``, ``holding`` and, if present, ``failed_picks`` (never proposed again) and
     ``visited_scenes`` (with ``revisits_last``);
@@ -171,8 +178,17 @@ class LookaheadPlanner(StatePolicy):
         pick_outcome: str = "mode",
         pick_rotations: int = 1,
         revisits_last: bool = False,
+        q_blend: float = 0.0,
+        q_log_floor: float | None = None,
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
+        if isinstance(q_blend, bool) or not isinstance(q_blend, (int, float)) or not 0 <= q_blend <= 1:
+            raise ValueError(f"q_blend must be a number in [0, 1] (the weight of Q in the decision score), got {q_blend!r}")
+        if q_log_floor is not None and (isinstance(q_log_floor, bool) or not isinstance(q_log_floor, (int, float))
+                                        or not 0 < q_log_floor < 1):
+            raise ValueError(f"q_log_floor must be None (Q on the return scale) or a number in (0, 1) (Q fitted as "
+                             f"log(max(y, q_log_floor))), got {q_log_floor!r}")
+        self.q_blend, self.q_log_floor = float(q_blend), q_log_floor
         for name, value, allowed in (("uncertainty_penalty", uncertainty_penalty, ""),
                                      ("greedy_uncertainty_penalty", greedy_uncertainty_penalty, " or None")):
             if allowed and value is None:
@@ -289,6 +305,20 @@ class LookaheadPlanner(StatePolicy):
             scores = rank_revisits_last(scores, heightmap, holding, result.next_heightmap, visited)
         return scores, result
 
+    def blend_q(self, scores: torch.Tensor, q_map: torch.Tensor, candidates: torch.Tensor) -> torch.Tensor:
+        """``(1 − w)·scores + w·Q(s, a)`` ``[B, N]``, w = ``q_blend``: each candidate's score (``V(f(s, a))`` less
+        any penalty, ``[B, N]``) averaged with Q's own estimate of the same return, read off ``q_map``
+        ``[B, R, H, W]`` at ``candidates`` ``[B, N, 3]`` (row, col, rotation) and brought to the return scale
+        (``exp`` for a Q fitted on ``log(max(y, q_log_floor))``). A ``-inf`` score (a ranked-last candidate) stays
+        ``-inf``; a candidate where Q's map is ``-inf`` (outside its frame) becomes ``-inf``."""
+        b, n, _ = candidates.shape
+        flat = (candidates[..., 2] * q_map.shape[-2] + candidates[..., 0]) * q_map.shape[-1] + candidates[..., 1]
+        q = q_map.flatten(1).gather(1, flat.reshape(b, n).long()).to(scores.dtype)
+        if self.q_log_floor is not None:
+            q = q.exp()
+        w = self.q_blend
+        return torch.where(torch.isneginf(scores), scores, (1 - w) * scores + w * q)
+
     @staticmethod
     def choose(scores: torch.Tensor, hp: dict[str, float], *, greedy: bool) -> torch.Tensor:
         """``[B]`` index of the chosen candidate: the best score (first on ties) or a draw from softmax(score/τ_v)."""
@@ -310,6 +340,8 @@ class LookaheadPlanner(StatePolicy):
             scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
                                         swept=self.pick_rotations > 1, visited=visited, **self.lookahead_options)
             scores = self.backup(result, scores, hp)
+            if self.q_blend:
+                scores = self.blend_q(scores, q_map, candidates)
             choice = self.choose(scores, hp, greedy=greedy)
             action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
             state_value = self.value_network(heightmap, in_hand)
