@@ -599,8 +599,10 @@ class PlannerConfig:
     branching: Optional[int] = spec(None, ge=1, doc="candidates expanded per node (tree)")
     gamma: Optional[float] = spec(None, ge=0.0, le=1.0, doc="discount of the backed-up scores (tree; the agent's γ)")
     terminal_reward: Optional[float] = spec(None, gt=0.0, doc="a predicted reward above it ends a branch (tree)")
+    penalty_depth: Optional[int] = spec(None, ge=1, doc="the first steps of the tree where λ·H is charged (tree)")
 
-    TREE_KEYS = ("depth", "branching", "gamma", "terminal_reward")
+    TREE_KEYS = ("depth", "branching", "gamma", "terminal_reward", "penalty_depth")
+    REQUIRED_TREE_KEYS = ("depth", "branching", "gamma", "terminal_reward")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
@@ -611,7 +613,10 @@ class PlannerConfig:
                       for key in PlannerConfig.TREE_KEYS if node[key] is not None]
         else:
             found += [f"{prefix}{key} is missing: planner=tree needs it (conf/planner/tree.yaml)"
-                      for key in PlannerConfig.TREE_KEYS if node[key] is None]
+                      for key in PlannerConfig.REQUIRED_TREE_KEYS if node[key] is None]
+            if node.penalty_depth is not None and node.depth is not None and node.penalty_depth > node.depth:
+                found.append(f"{prefix}penalty_depth={node.penalty_depth} is out of range: must be <= "
+                             f"{prefix}depth ({node.depth})")
             if node.branching is not None and node.branching > node.num_candidates:
                 found.append(f"{prefix}branching={node.branching} is out of range: must be <= "
                              f"{prefix}num_candidates ({node.num_candidates})")
@@ -739,6 +744,7 @@ class PlannerOverrides:
     branching: Optional[int] = spec(None, ge=1, doc="tree: candidates expanded per node")
     terminal_reward: Optional[float] = spec(None, gt=0.0, doc="tree: a predicted reward above it ends a branch")
     gamma: Optional[float] = spec(None, ge=0.0, le=1.0, doc="tree: discount (null = the agent's)")
+    penalty_depth: Optional[int] = spec(None, ge=1, doc="tree: the first steps where λ·H is charged (null = every depth)")
 
 
 @dataclass

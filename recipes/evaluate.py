@@ -174,7 +174,7 @@ def one_line_lists(text: str) -> str:
 # the planner as built (a tree selected by override has its constructor's depth and branching, in no config;
 # uncertainty_penalty: the greedy decisions' λ)
 PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last", "pick_outcome", "pick_rotations", "revisits_last", "q_blend")
-PLAYED_TREE_KEYS = ("depth", "branching")
+PLAYED_TREE_KEYS = ("depth", "branching", "penalty_depth")
 
 
 def played_with(agent, cfg: dict) -> dict:

@@ -420,6 +420,25 @@ def test_depth_two_scores_are_the_backup_of_the_expanded_candidates_written_out(
     assert torch.equal(out["action"], out["candidate_actions"][torch.arange(2), best])
 
 
+def test_penalty_depth_one_charges_the_entropy_of_the_first_action_alone(nets):
+    """penalty_depth=1: every expanded first action's backed-up score is the unpenalised tree's less λ·H of its own
+    prediction (all candidates expanded, so the penalty cannot change which are); the default charges the deeper
+    predictions too, which differs."""
+    q, dynamics, value = nets
+    lam, common = 0.5, dict(depth=2, branching=5, gamma=0.8, terminal_reward=0.1, **GREEDY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        plain = TreePlanner(q, dynamics, value, **common)(batch())
+        first = TreePlanner(q, dynamics, value, uncertainty_penalty=lam, penalty_depth=1, **common)(batch())
+        every = TreePlanner(q, dynamics, value, uncertainty_penalty=lam, **common)(batch())
+    assert torch.equal(first["candidate_actions"], plain["candidate_actions"])
+    want = plain["candidate_scores"] - lam * first["candidate_entropy"]
+    torch.testing.assert_close(first["candidate_scores"], want)
+    assert not torch.allclose(every["candidate_scores"], want)  # every depth: the leaves' entropies charged too
+    assert torch.equal(first["action"], first["candidate_actions"][torch.arange(3), want.argmax(-1)])
+    with pytest.raises(ValueError, match=r"penalty_depth must be None \(every depth\) or an int in \[1, depth=2\], got 3"):
+        TreePlanner(q, dynamics, value, penalty_depth=3, **common)
+
+
 def test_a_predicted_success_ends_its_branch(nets):
     q, dynamics, _ = nets
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -526,7 +545,7 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     assert played_with(agent, cfg)["planner"] == {"name": "tree", "num_candidates": cfg["planner"]["num_candidates"],
                                                   "uncertainty_penalty": 0.0, "empty_picks_last": False,
                                                   "pick_outcome": "mode", "pick_rotations": 1, "revisits_last": False,
-                                                  "q_blend": 0.0, "depth": 2, "branching": 3}
+                                                  "q_blend": 0.0, "depth": 2, "branching": 3, "penalty_depth": 2}
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -546,6 +565,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("agent=fcdqn", "planner.pick_rotations=2"), "planner.pick_rotations=2 is set but agent=fcdqn .* only agent=ldm"),
     (("agent=dynaq", "planner.q_blend=0.5"), "planner.q_blend=0.5 is set but agent=dynaq .* only agent=ldm"),
     (("planner.q_blend=1.5",), "planner.q_blend=1.5"),
+    (("planner=tree", "planner.penalty_depth=3"), r"planner.penalty_depth=3 is out of range: must be <= planner.depth \(2\)"),
+    (("planner.penalty_depth=1",), r"planner.penalty_depth=1 is read by planner=tree only"),
 ])
 def test_option_misuse_is_one_clear_config_error(overrides, message):
     from ldm_rl.config_schema import SCHEMAS, ConfigError, validate_config
@@ -610,7 +631,7 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
     assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
         "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "pick_outcome": "mode",
-        "pick_rotations": 2, "revisits_last": True, "q_blend": 0.0, "depth": 2, "branching": 2}
+        "pick_rotations": 2, "revisits_last": True, "q_blend": 0.0, "depth": 2, "branching": 2, "penalty_depth": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):

@@ -14,7 +14,9 @@ This planner expands a tree over imagined states, one batched LDM pass per depth
        score(s, a) = R(ŝ') − λ·H(s, a) + γ · (1 − T(ŝ')) · max_{a'} score(ŝ', a'),   ŝ' = f(s, a)
 
    with ``R`` V's reward head and ``T(ŝ') = [R(ŝ') > terminal_reward]``: every task here rewards only its
-   terminal success, so a predicted success ends its branch; the leaves score ``V − λ·H``;
+   terminal success, so a predicted success ends its branch; the leaves score ``V − λ·H``. With ``penalty_depth``
+   d, ``λ·H`` is charged at the first d steps only (1: the first action's prediction, whose entropy is read off the
+   real scene);
 4. the action is chosen among the K expanded first actions by their backed-up score (greedy: the best,
    first on ties; exploring: a draw from ``softmax(score/τ_v)``).
 
@@ -35,7 +37,7 @@ from ldm_rl.planning.sampling import sample_candidates
 __all__ = ["TreePlanner", "TREE_KEYS"]
 
 # the constructor arguments only this planner reads (beside LookaheadPlanner's)
-TREE_KEYS = ("depth", "branching", "gamma", "terminal_reward")
+TREE_KEYS = ("depth", "branching", "gamma", "terminal_reward", "penalty_depth")
 
 
 class TreePlanner(LookaheadPlanner):
@@ -46,6 +48,9 @@ class TreePlanner(LookaheadPlanner):
         branching: K, candidates expanded per node (1 ≤ K ≤ ``num_candidates``).
         gamma: the agent's discount γ of the backed-up scores (the V targets' γ).
         terminal_reward: a predicted state whose predicted reward exceeds this ends its branch (> 0).
+        penalty_depth: with an ``uncertainty_penalty`` λ, the steps of the tree where ``λ·H`` is charged: the first
+            ``penalty_depth`` (1 = the first action's prediction alone, whose entropy is read off the real scene; the
+            deeper ones are read off predicted scenes); None = every depth.
 
     ``value_network`` needs ``value_and_reward`` (the LDM agent's V has its reward head). Writes what the
     one-step planner writes and ``candidate_scores`` ``[*B, N]``: the backed-up score of each expanded first
@@ -53,7 +58,8 @@ class TreePlanner(LookaheadPlanner):
     """
 
     def __init__(self, q_network: nn.Module, dynamics: nn.Module, value_network: nn.Module, *, depth: int = 2,
-                 branching: int = 3, gamma: float, terminal_reward: float = 0.1, **kwargs) -> None:
+                 branching: int = 3, gamma: float, terminal_reward: float = 0.1, penalty_depth: int | None = None,
+                 **kwargs) -> None:
         super().__init__(q_network, dynamics, value_network, **kwargs)
         if isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
             raise ValueError(f"depth must be an int >= 1 (primitives looked ahead), got {depth!r}")
@@ -69,7 +75,11 @@ class TreePlanner(LookaheadPlanner):
         if depth > 1 and self.pick_outcome != "mode":
             raise ValueError(f"pick_outcome={self.pick_outcome!r} is the one-step planner's (depth=1): the tree backs "
                              f"up R + γV through one predicted state per candidate; got depth={depth}")
+        if penalty_depth is not None and (isinstance(penalty_depth, bool) or not isinstance(penalty_depth, int)
+                                          or not 1 <= penalty_depth <= depth):
+            raise ValueError(f"penalty_depth must be None (every depth) or an int in [1, depth={depth}], got {penalty_depth!r}")
         self.depth, self.branching = depth, branching
+        self.penalty_depth = depth if penalty_depth is None else penalty_depth
         self.lookahead_options = {"with_states": depth > 1, "with_reward": depth > 1}
         self.gamma, self.terminal_reward = float(gamma), float(terminal_reward)
         self.out_keys = [*self.out_keys, keys.CANDIDATE_SCORES]
@@ -94,9 +104,14 @@ class TreePlanner(LookaheadPlanner):
         reward = pick(result.rewards)
         live = (reward <= self.terminal_reward).float()
         node = reward + self.gamma * live * continuation
-        if hp["uncertainty_penalty"]:
-            node = node - hp["uncertainty_penalty"] * pick(result.entropy)
+        penalty = self._penalty(hp, self.depth - remaining)  # these nodes are actions at that depth
+        if penalty:
+            node = node - penalty * pick(result.entropy)
         return torch.full_like(scores, float("-inf")).scatter(1, best, node.view(m, k))
+
+    def _penalty(self, hp: dict[str, float], depth: int) -> float:
+        """λ charged on the predictions of actions at ``depth`` (1 = the first action): 0 beyond ``penalty_depth``."""
+        return hp["uncertainty_penalty"] if depth <= self.penalty_depth else 0.0
 
     def _continuation(self, heightmap, in_hand, holding, remaining: int, hp: dict[str, float]) -> torch.Tensor:
         """``[M]``: the best score reachable from the predicted states ``[M]`` within ``remaining`` primitives."""
@@ -104,8 +119,8 @@ class TreePlanner(LookaheadPlanner):
         candidates = sample_candidates(q_map, self.num_candidates, beta=hp["beta"], sigma=hp["sigma"],
                                        sigma_rot=hp["sigma_rot"], mode="argmax")
         deeper = remaining > 1
-        scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
-                                    with_states=deeper, with_reward=deeper)
+        scores, result = self.score(heightmap, in_hand, holding, candidates,
+                                    self._penalty(hp, self.depth - remaining + 1), with_states=deeper, with_reward=deeper)
         if deeper:
             scores = self._expand(result, scores, remaining - 1, hp)
         return scores.amax(1)
