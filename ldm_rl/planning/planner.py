@@ -311,9 +311,8 @@ class LookaheadPlanner(StatePolicy):
         ``[B, R, H, W]`` at ``candidates`` ``[B, N, 3]`` (row, col, rotation) and brought to the return scale
         (``exp`` for a Q fitted on ``log(max(y, q_log_floor))``). A ``-inf`` score (a ranked-last candidate) stays
         ``-inf``; a candidate where Q's map is ``-inf`` (outside its frame) becomes ``-inf``."""
-        b, n, _ = candidates.shape
-        flat = (candidates[..., 2] * q_map.shape[-2] + candidates[..., 0]) * q_map.shape[-1] + candidates[..., 1]
-        q = q_map.flatten(1).gather(1, flat.reshape(b, n).long()).to(scores.dtype)
+        flat = geometry.action_to_flat(candidates.long(), *q_map.shape[-2:])  # [B, N]
+        q = q_map.flatten(1).gather(1, flat).to(scores.dtype)
         if self.q_log_floor is not None:
             q = q.exp()
         w = self.q_blend
