@@ -60,6 +60,7 @@ def evaluate(cfg: DictConfig) -> dict:
     """Rebuild, play, report."""
     from ldm_rl.agents import load_agent
     from ldm_rl.envs import make_env_from_config
+    from ldm_rl.envs.tasks.bin_packing import pile_tops
     from ldm_rl.run.checkpoint import CheckpointError
     from ldm_rl.evaluation import (episode_record, episode_succeeded, evaluate_policy, is_bin_packing, packing_line,
                                    packing_report, pick_counts, undone_places)
@@ -137,6 +138,7 @@ def evaluate(cfg: DictConfig) -> dict:
     log.info(f"places that put back what the pick before took: {sum(undone)}, in {summary['undone']['episodes']} "
              f"of {len(undone)} episodes")
     if blocks_in_bin is not None:  # and the scripted expert on the same scenes
+        per_episode["pile_top"] = pile_tops(returns)  # m where it packed, else None: the pile scene by scene
         summary["packing"] = packing_report(env, returns, blocks_in_bin, seed=scenes, progress=bool(cfg.progress))
         log.info(f"bin packing: {packing_line(summary['packing'])}; the scripted expert on the same scenes: "
                  f"{packing_line(summary['packing']['expert'])}")

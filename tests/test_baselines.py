@@ -479,6 +479,7 @@ def test_bin_packing_smoke_run_counts_positive_pile_rewards_as_successes(tmp_pat
     assert 0 <= packing["mean_blocks_in_bin"] <= 8 and packing["packed"] == 0
     blocks = evaluation["per_episode"]["blocks_in_bin"]  # per scene, in order, for paired comparisons
     assert len(blocks) == 2 and sum(blocks) / 2 == pytest.approx(packing["mean_blocks_in_bin"])
+    assert evaluation["per_episode"]["pile_top"] == [None, None]  # per scene too; no pile where it did not pack
     # online_weights needs a run trained with averaged greedy weights: one line, before any episode
     proc = subprocess.run([*evaluate[:-1], "online_weights=true", f"hydra.run.dir={tmp_path / 'online'}"],
                           capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=600)

@@ -249,7 +249,7 @@ def test_bin_packing_pile_reward_is_inversely_proportional_to_the_pile_top():
 
 
 def test_packing_scores_read_the_pile_top_back_from_the_reward():
-    from ldm_rl.envs.tasks.bin_packing import packing_scores, pile_reward, pile_top_from_reward
+    from ldm_rl.envs.tasks.bin_packing import packing_scores, pile_reward, pile_top_from_reward, pile_tops
 
     for top in (0.03, 0.05, 0.094, 0.121, 0.3):
         assert pile_top_from_reward(pile_reward(top)) == pytest.approx(top)
@@ -259,6 +259,7 @@ def test_packing_scores_read_the_pile_top_back_from_the_reward():
     assert scores["mean_return"] == pytest.approx((0.375 + 0.25) / 4)
     assert scores["mean_return_authors"] == pytest.approx((2.0 - 2.0) / 4, abs=1e-9)  # 100·(0.1 − top): +2, −2
     assert packing_scores([0.0, 0.0])["mean_pile_top"] is None
+    assert pile_tops([pile_reward(0.08), 0.0, pile_reward(0.12)]) == [pytest.approx(0.08), None, pytest.approx(0.12)]
     assert "mean_blocks_in_bin" not in scores
     assert packing_scores([pile_reward(0.08), 0.0], [8, 3])["mean_blocks_in_bin"] == 5.5
     for bad in ([], [1.5]):

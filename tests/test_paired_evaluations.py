@@ -97,12 +97,20 @@ def test_pair_counts_and_the_sign_test():
     assert paired.ties == 2 and paired.sign_p() == 1.0  # 2 against 1: no evidence
     assert PairedCounts(10, 60, 40, 9, 1).sign_p() == pytest.approx(Paired(0, 9, 1, 0).mcnemar_p())  # the same test
     assert (paired + paired).total_a == 52 and (paired + paired).ties == 4
-    with pytest.raises(ValueError, match="empty: no scene to compare"):
+    with pytest.raises(ValueError, match="nothing to compare"):
         pair_counts([], [])
-    with pytest.raises(ValueError, match="non-negative ints, got -1"):
-        pair_counts([1, -1], [1, 1])
-    with pytest.raises(ValueError, match="non-negative ints, got 0.5"):
-        pair_counts([1, 0.5], [1, 1])
+    with pytest.raises(ValueError, match="nothing to compare"):
+        pair_counts([None, 3], [2, None])  # no scene with a number in both
+    for bad in (-1, float("nan"), True, "3"):
+        with pytest.raises(ValueError, match=f"finite and non-negative \\(or null\\), got {bad!r}"):
+            pair_counts([1, bad], [1, 1])
+
+
+def test_pair_counts_leaves_out_the_scenes_either_has_no_number_for():
+    # pile tops (m): a scene one way did not pack has no pile and drops out of the pair, whichever side it is on
+    paired = pair_counts([0.12, None, 0.10, 0.14, None], [0.11, 0.13, 0.10, None, None])
+    assert paired == PairedCounts(scenes=2, total_a=pytest.approx(0.22), total_b=pytest.approx(0.21), a_higher=1,
+                                  b_higher=0)
 
 
 def test_main_compares_a_per_episode_count(tmp_path, capsys):
@@ -115,7 +123,13 @@ def test_main_compares_a_per_episode_count(tmp_path, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == ("| pair | scenes | plain: mean blocks_in_bin | K=8: mean blocks_in_bin | plain higher | K=8 higher "
                         "| equal | sign test p |")
-    assert lines[2] == "| plain / rot | 4 | 5.50 | 6.25 | 0 | 2 | 2 | 0.5 |"
+    assert lines[2] == "| plain / rot | 4 | 5.5 | 6.25 | 0 | 2 | 2 | 0.5 |"
+    # the pile top (m) on the scenes both packed: A's 0.12 against B's 0.11 on the only such scene
+    piles = [evaluation(tmp_path / f"{n}.json", packed, task="ldm_rl/BinPacking-v0", num_objects=8,
+                        per_episode={"success": packed, "pile_top": tops})
+             for n, packed, tops in (("a", [1, 0], [0.12, None]), ("b", [1, 1], [0.11, 0.13]))]
+    assert main([*piles, "--count", "pile_top"]) == 0
+    assert capsys.readouterr().out.splitlines()[2] == "| a / b | 1 | 0.12 | 0.11 | 1 | 0 | 0 | 1 |"
     assert main([*files, "--count", "picks_held"]) == 2  # a count the files do not have: one line naming it
     assert "per_episode.picks_held must be a list with one entry per scene (it has: blocks_in_bin, success)" in \
         capsys.readouterr().err

@@ -10,10 +10,12 @@ scene order) are paired: scenes both won, only A won, only B won, neither. McNem
 "only A" and "only B" differ by more than chance (two-sided binomial on the discordant scenes, p = 1 with none).
 One row per pair, then the pairs pooled (counts summed: e.g. three seeds' weights, each on the same scenes).
 
-``--count KEY`` compares a per-episode count instead of success (``per_episode.KEY``: ``blocks_in_bin`` on bin
-packing, where a full pack is rare and the blocks packed tell two ways of playing apart; ``picks_held``, ``picks``,
-``length``): each way's mean per scene, the scenes where A's count is higher, where B's is, ties, and the two-sided
-sign test on the scenes that differ (McNemar's exact test is this test on 0 / 1 outcomes).
+``--count KEY`` compares a per-episode number instead of success (``per_episode.KEY``: ``blocks_in_bin`` on bin
+packing, where a full pack is rare and the blocks packed tell two ways of playing apart; ``pile_top`` there, in
+metres, on the scenes both packed; ``picks_held``, ``picks``, ``length``): each way's mean per scene, the scenes
+where A's number is higher, where B's is, ties, and the two-sided sign test on the scenes that differ (McNemar's
+exact test is this test on 0 / 1 outcomes). A scene either file has no number for (``null``: no pile where it did
+not pack) is left out of that pair.
 """
 
 from __future__ import annotations
@@ -54,12 +56,13 @@ class Paired:
 
 @dataclass(frozen=True)
 class PairedCounts:
-    """A per-episode count (blocks in the bin, picks that held, …) of two evaluations on the same scenes."""
+    """A per-episode number (blocks in the bin, picks that held, the pile top, …) of two evaluations on the same
+    scenes, over the scenes both have one for."""
 
     scenes: int
-    total_a: int
-    total_b: int
-    a_higher: int  # scenes where A's count is the larger
+    total_a: float
+    total_b: float
+    a_higher: int  # scenes where A's number is the larger
     b_higher: int
 
     @property
@@ -95,16 +98,20 @@ def pair(a: list[int], b: list[int]) -> Paired:
     return Paired(both, only_a, only_b, len(a) - both - only_a - only_b)
 
 
-def pair_counts(a: list[int], b: list[int]) -> PairedCounts:
-    """Paired comparison of two per-scene count lists (non-negative ints, same scenes in the same order)."""
+def pair_counts(a: list[float | None], b: list[float | None]) -> PairedCounts:
+    """Paired comparison of two per-scene lists of a non-negative number (a count, or a pile top in metres), same
+    scenes in the same order; a scene with ``None`` in either list (no pile where it did not pack) is left out."""
     if len(a) != len(b):
         raise ValueError(f"per-scene lists of different lengths: {len(a)} and {len(b)}")
-    if not a:
-        raise ValueError("per-scene lists are empty: no scene to compare")
-    bad = [v for v in (*a, *b) if isinstance(v, bool) or not isinstance(v, int) or v < 0]
+    bad = [v for v in (*a, *b) if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
+                                                     or not math.isfinite(v) or v < 0)]
     if bad:
-        raise ValueError(f"per-scene counts must be non-negative ints, got {bad[0]!r}")
-    return PairedCounts(len(a), sum(a), sum(b), sum(x > y for x, y in zip(a, b)), sum(y > x for x, y in zip(a, b)))
+        raise ValueError(f"per-scene numbers must be finite and non-negative (or null), got {bad[0]!r}")
+    kept = [(x, y) for x, y in zip(a, b) if x is not None and y is not None]
+    if not kept:
+        raise ValueError("no scene has a number in both lists: nothing to compare")
+    return PairedCounts(len(kept), sum(x for x, _ in kept), sum(y for _, y in kept),
+                        sum(x > y for x, y in kept), sum(y > x for x, y in kept))
 
 
 def read(path: Path, key: str = "success") -> dict:
@@ -155,12 +162,12 @@ def table(rows: list[tuple[str, Paired]], label_a: str, label_b: str) -> str:
 
 
 def count_table(rows: list[tuple[str, PairedCounts]], label_a: str, label_b: str, count: str) -> str:
-    """Markdown for a per-episode count: one row per pair and the pooled row."""
+    """Markdown for a per-episode number: one row per pair and the pooled row (``scenes``: those both have one)."""
     lines = [f"| pair | scenes | {label_a}: mean {count} | {label_b}: mean {count} | {label_a} higher | "
              f"{label_b} higher | equal | sign test p |",
              "|---|---|---|---|---|---|---|---|"]
     for name, p in rows:
-        lines.append(f"| {name} | {p.scenes} | {p.total_a / p.scenes:.2f} | {p.total_b / p.scenes:.2f} | {p.a_higher} | "
+        lines.append(f"| {name} | {p.scenes} | {p.total_a / p.scenes:.4g} | {p.total_b / p.scenes:.4g} | {p.a_higher} | "
                      f"{p.b_higher} | {p.ties} | {p.sign_p():.3g} |")
     return "\n".join(lines) + "\n"
 
@@ -172,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="names of the two ways of playing")
     parser.add_argument("--out", type=Path, default=None, help="also write the table to this markdown file")
     parser.add_argument("--count", default=None, metavar="KEY",
-                        help="compare this per-episode count (blocks_in_bin, picks_held, picks, length), not success")
+                        help="compare this per-episode number (blocks_in_bin, pile_top, picks_held, picks, length), "
+                             "not success")
     args = parser.parse_args(argv)
     if len(args.files) % 2:
         parser.error(f"evaluation.json files come in pairs (A B ...); got {len(args.files)}")

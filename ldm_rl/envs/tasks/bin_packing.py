@@ -57,6 +57,11 @@ def pile_top_from_reward(reward: float) -> float:
     return MIN_PILE_TOP / float(reward)
 
 
+def pile_tops(returns: list[float]) -> list[float | None]:
+    """Each episode's pile top (m) where it packed (a positive return under our reward), else ``None``."""
+    return [pile_top_from_reward(r) if r > 0 else None for r in returns]
+
+
 def packing_scores(returns: list[float], blocks_in_bin: list[int] | None = None) -> dict:
     """Episode returns (our reward: a success's ``pile_reward``, else 0) -> the bin-packing report.
 
@@ -70,7 +75,7 @@ def packing_scores(returns: list[float], blocks_in_bin: list[int] | None = None)
         raise ValueError("returns must hold at least one episode's return")
     if blocks_in_bin is not None and len(blocks_in_bin) != len(returns):
         raise ValueError(f"blocks_in_bin must hold one count per episode ({len(returns)}), got {len(blocks_in_bin)}")
-    tops = [pile_top_from_reward(r) for r in returns if r > 0]
+    tops = [top for top in pile_tops(returns) if top is not None]
     scores = {
         "episodes": len(returns),
         "packed": len(tops) / len(returns),
