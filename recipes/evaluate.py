@@ -104,7 +104,7 @@ def evaluate(cfg: DictConfig) -> dict:
     record = episode_record(env, returns, blocks_in_bin)
     # in scene order, for paired comparisons; picks: primitives taken with an empty hand, picks_held: those that held,
     # undone: places that put back what the pick before them took (half a 2-cycle: pick, put back, pick again)
-    per_episode: dict[str, list[int]] = {"success": [], "length": [], "picks": [], "picks_held": [], "undone": []}
+    per_episode: dict[str, list] = {"success": [], "length": [], "picks": [], "picks_held": [], "undone": []}
     if blocks_in_bin is not None:
         per_episode["blocks_in_bin"] = blocks_in_bin  # bin packing: the blocks in the bin at each episode's end
 
