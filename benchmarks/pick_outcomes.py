@@ -37,7 +37,11 @@ states: first, in the top 10, the median count of entries above it and its media
 map on the last 100 expert place states (each with its in-hand image), before and after ``--margin-steps`` on the
 other expert places: whether Q has learnt, or can learn from the demonstrations, where the expert sets a block.
 ``--save-weights FILE`` writes the weights so fitted as a checkpoint to play (``place_outcomes.py FILE``): what the
-pile does when Q's place map is nearer the expert's.
+pile does when Q's place map is nearer the expert's. ``--value-margin-steps K`` (with ``--places``) reads V instead of Q's map:
+on the same 100 states, the expert's place and Q's proposals (the targets' proposal, N of them) predicted by the LDM,
+how often V ranks the expert's outcome first and by how much the best proposal leads it; then fits V with its expert
+margin alone (``agent.value_margin_weight``, lead ``--value-margin``) on the other expert places for K steps and reads
+again: whether the demonstrations can teach V to prefer the expert's lower pile (``--save-weights``: play it).
 A measurement of the data a run collected, not of time; run by hand (docs/policy.md, "Bin packing").
 """
 
@@ -399,6 +403,71 @@ def fit_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: 
     return trace
 
 
+def value_margin_reading(agent, p: dict, rows: np.ndarray, margin: float, batch: int = 10,
+                         grad: bool = False) -> torch.Tensor:
+    """Per expert place (or pick) of ``rows``, how far V of the greedy planner ranks the expert's predicted outcome
+    below the best of its Q's proposals (``agent.value_margin_weight``'s hinge: ``max_i [V(f(s, a_i)) + margin·1(a_i ≠
+    a_E)] − V(f(s, a_E))``, the proposals those of the loss's target proposal, N = ``num_target_candidates``; Q and
+    the LDM in eval mode, V in eval mode with its gradient when ``grad``): ``[n]`` float32, V's units."""
+    from ldm_rl.planning.sampling import sample_candidates
+    from ldm_rl.torch_utils import eval_mode
+
+    planner, loss = agent.greedy_policy, agent.loss
+    q, model, value = planner.q_network, planner.dynamics, planner.value_network
+    out = []
+    for start in range(0, len(rows), batch):
+        r = rows[start:start + batch]
+        heightmap = torch.from_numpy(p["heightmap"][r]).unsqueeze(1)
+        in_hand, holding = _hand(p, r)
+        expert = torch.from_numpy(p["action"][r]).reshape(-1, 3).long()
+        with torch.no_grad(), eval_mode(q, model):
+            proposals = sample_candidates(q(heightmap, in_hand, holding).float(), loss.num_target_candidates,
+                                          **loss.target_proposal)  # [b, N, 3]
+            actions = torch.cat((expert.unsqueeze(1), proposals), 1)  # the expert's first
+            m = actions.shape[1]
+            predicted = model.predict(heightmap.repeat_interleave(m, 0), in_hand.repeat_interleave(m, 0),
+                                      holding.repeat_interleave(m, 0), actions.reshape(-1, 3))
+        training = [(module, module.training) for module in value.modules()]
+        value.eval()  # its BatchNorm statistics fixed; eval_mode would also drop the gradient
+        try:
+            with torch.set_grad_enabled(grad):
+                values = value(predicted.heightmap, predicted.in_hand).float().reshape(-1, m)
+        finally:
+            for module, flag in training:
+                module.training = flag
+        lead = torch.where((proposals == expert.unsqueeze(1)).all(-1), 0.0, margin)
+        out.append((values[:, 1:] + lead).amax(1) - values[:, 0])
+    return torch.cat(out)
+
+
+def value_rank_line(agent, p: dict, rows: np.ndarray) -> str:
+    """V's ranking of the expert's predicted outcome among its Q's proposals' on ``rows``: how often it leads them
+    all, and the median lead of the best proposal over it (V's units)."""
+    gap = value_margin_reading(agent, p, rows, margin=0.0).numpy()
+    return (f"the expert's outcome first by V in {int((gap <= 0).sum())} of {len(gap)}; the best proposal's lead over "
+            f"it: median {np.median(gap):+.4f}, mean {gap.mean():+.4f}")
+
+
+def fit_value_margin(agent, p: dict, rows: np.ndarray, steps: int, lr: float, margin: float,
+                     seed: int = 0) -> list[float]:
+    """Fit the V of ``agent``'s greedy planner with the value margin term alone (``agent.value_margin_weight``; 4
+    expert rows per step, Adam at ``lr``); returns the term's value every 50 steps."""
+    if agent.loss.value_scale.log_floor is not None:
+        raise SystemExit("--value-margin-steps fits a linear V; this run's V is on a log scale (agent.value_log_floor)")
+    value = agent.greedy_policy.value_network.requires_grad_(True)  # an averaged copy is built frozen
+    optimiser = torch.optim.Adam(value.parameters(), lr=lr)
+    rng, trace = np.random.default_rng(seed), []
+    for step in range(steps):
+        term = value_margin_reading(agent, p, rng.choice(rows, 4, replace=False), margin, grad=True).clamp_min(0).mean()
+        if term.requires_grad:
+            optimiser.zero_grad()
+            term.backward()
+            optimiser.step()
+        if step % 50 == 0 or step == steps - 1:
+            trace.append(float(term.detach()))
+    return trace
+
+
 def padded_q(q, frame_pad: int):
     """A QFCN with ``q``'s settings and weights whose frames are padded by ``frame_pad`` px (``agent.q_frame_pad``)."""
     from ldm_rl.models.q_fcn import QFCN
@@ -463,8 +532,11 @@ def save_fitted(agent, run: Path, weights: str, path: Path, note: str) -> None:
 
 
 def places_report(run: Path, margin_steps: int, margin_lr: float, margin_temperature: float = 0.0,
-                  weights: str = "checkpoint.pt", save: Path | None = None) -> None:
+                  weights: str = "checkpoint.pt", save: Path | None = None, value_margin_steps: int = 0,
+                  value_margin: float = 0.01) -> None:
     """The expert's place in ``run``'s Q map on its last 100 expert place states, before and after ``margin_steps``
+    of Q's margin; with ``value_margin_steps``, V's ranking of the expert's predicted outcome on the same states
+    before and after that many steps of V's margin (``value_margin``: its lead, V's units) on the other expert places
     (``save``: where to write the fitted weights, see :func:`save_fitted`)."""
     from ldm_rl.agents import load_agent
 
@@ -473,7 +545,7 @@ def places_report(run: Path, margin_steps: int, margin_lr: float, margin_tempera
     if agent.name != "ldm":
         raise SystemExit(f"--places reads an LDM agent's Q; {run}/{weights} holds agent {agent.name!r}")
     expert = np.nonzero(p["expert"])[0]
-    if len(expert) <= 100 + 4 * (margin_steps > 0):
+    if len(expert) <= 100 + 4 * (margin_steps > 0 or value_margin_steps > 0):
         raise SystemExit(f"{run}'s replay has {len(expert)} expert places: --places needs more than 100")
     ranks = [("as trained", rank_reading(agent, p, expert[-100:]))]
     if margin_steps:
@@ -481,12 +553,28 @@ def places_report(run: Path, margin_steps: int, margin_lr: float, margin_tempera
         print(f"the margin term over {margin_steps} steps on the other {len(expert) - 100} expert places: "
               + " → ".join(f"{t:.3f}" for t in trace))
         ranks.append((f"after {margin_steps} margin steps", rank_reading(agent, p, expert[-100:])))
-        if save is not None:
-            save_fitted(agent, run, weights, save, f"Q fitted by benchmarks/pick_outcomes.py --places --margin-steps "
-                        f"{margin_steps} --margin-lr {margin_lr:g} --margin-temperature {margin_temperature:g}")
+    values = []
+    if value_margin_steps:
+        values.append(("as trained", value_rank_line(agent, p, expert[-100:])))
+        trace = fit_value_margin(agent, p, expert[:-100], value_margin_steps, margin_lr, value_margin)
+        print(f"V's margin term (lead {value_margin:g}) over {value_margin_steps} steps on the other "
+              f"{len(expert) - 100} expert places: " + " → ".join(f"{t:.4f}" for t in trace))
+        values.append((f"after {value_margin_steps} steps of V's margin", value_rank_line(agent, p, expert[-100:])))
+    if save is not None and (margin_steps or value_margin_steps):
+        fitted = " and ".join(part for part in (
+            margin_steps and f"Q (--margin-steps {margin_steps} --margin-temperature {margin_temperature:g})",
+            value_margin_steps and f"V (--value-margin-steps {value_margin_steps} --value-margin {value_margin:g})")
+            if part)
+        save_fitted(agent, run, weights, save, f"{fitted} fitted by benchmarks/pick_outcomes.py --places, "
+                    f"--margin-lr {margin_lr:g}")
     print(f"\n{run}: the expert's place in Q's whole map, last 100 expert place states ({weights}):")
     for when, line in ranks:
         print(f"  {when}: {line}")
+    if values:
+        print(f"V on the same states, the expert's predicted outcome against its Q's {agent.loss.num_target_candidates} "
+              "proposals':")
+        for when, line in values:
+            print(f"  {when}: {line}")
 
 
 def main() -> None:
@@ -512,6 +600,11 @@ def main() -> None:
                         help="with --proposals: read the run's Q weights in frames padded by this many px (agent.q_frame_pad)")
     parser.add_argument("--weights", default="checkpoint.pt",
                         help="with --proposals: the weights file in each run folder to read (best_policy.pt: the selected ones)")
+    parser.add_argument("--value-margin-steps", type=int, default=0,
+                        help="with --places: also read V's ranking of the expert's predicted outcome, and fit V with "
+                             "its expert margin alone (agent.value_margin_weight) for this many steps")
+    parser.add_argument("--value-margin", type=float, default=0.01,
+                        help="the lead of --value-margin-steps (agent.value_margin; V's units)")
     parser.add_argument("--save-weights", type=Path, default=None,
                         help="with --places and --margin-steps: write the fitted weights to this file (a checkpoint "
                              "benchmarks/place_outcomes.py and recipes/evaluate.py play)")
@@ -524,9 +617,14 @@ def main() -> None:
         parser.error(f"--margin-steps must be >= 0 and goes with --proposals or --places, got {args.margin_steps}")
     if args.places and (args.proposals or args.model):
         parser.error("--places reads the expert's places alone: leave out --proposals and --model")
-    if args.save_weights is not None and not (args.places and args.margin_steps and len(args.runs) == 1):
-        parser.error(f"--save-weights {args.save_weights} writes the Q that --margin-steps fits on one run's places: "
-                     "pass --places, --margin-steps and one run")
+    if args.value_margin_steps < 0 or (args.value_margin_steps and not args.places):
+        parser.error(f"--value-margin-steps must be >= 0 and goes with --places, got {args.value_margin_steps}")
+    if not args.value_margin > 0:
+        parser.error(f"--value-margin must be > 0 (V's units), got {args.value_margin!r}")
+    if args.save_weights is not None and not (args.places and (args.margin_steps or args.value_margin_steps)
+                                              and len(args.runs) == 1):
+        parser.error(f"--save-weights {args.save_weights} writes the Q (or V) that --margin-steps (--value-margin-steps) "
+                     "fits on one run's places: pass --places, one of them and one run")
     if args.frame_pad and not args.proposals:
         parser.error(f"--frame-pad {args.frame_pad} pads the Q that --proposals reads: pass --proposals too")
     if not args.margin_lr > 0:
@@ -543,7 +641,7 @@ def main() -> None:
     for run in args.runs:
         if args.places:
             places_report(run, args.margin_steps, args.margin_lr, args.margin_temperature, args.weights,
-                          args.save_weights)
+                          args.save_weights, args.value_margin_steps, args.value_margin)
             continue
         report(run, args.surface, args.max_region, args.model, args.opening, rotations=args.rotations, parts=args.parts)
         if args.proposals:

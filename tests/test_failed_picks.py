@@ -199,8 +199,10 @@ def test_pick_outcomes_benchmark_measures_distance_to_the_object_and_ranks_score
     (["--weights", "best_policy.pt"], "pass --proposals too"),
     (["--margin-steps", "5"], "goes with --proposals or --places, got 5"),
     (["--places", "--proposals"], "--places reads the expert's places alone"),
-    (["--places", "--save-weights", "fit.pt"], "--save-weights fit.pt writes the Q that --margin-steps fits"),
-    (["--margin-steps", "5", "--proposals", "--save-weights", "fit.pt"], "pass --places, --margin-steps and one run"),
+    (["--places", "--save-weights", "fit.pt"], "--save-weights fit.pt writes the Q (or V) that --margin-steps"),
+    (["--margin-steps", "5", "--proposals", "--save-weights", "fit.pt"], "pass --places, one of them and one run"),
+    (["--value-margin-steps", "5"], "--value-margin-steps must be >= 0 and goes with --places, got 5"),
+    (["--places", "--value-margin", "0"], "--value-margin must be > 0 (V's units), got 0.0"),
 ])
 def test_pick_outcomes_refuses_weights_it_cannot_read(argv, message, monkeypatch, capsys, tmp_path):
     """--weights names a file of the run folder (the final or the selected weights), and only --proposals reads it:
@@ -288,3 +290,49 @@ def test_margin_fit_and_q_readings_act_on_the_weights_the_greedy_policy_plays():
     assert bench.rank_reading(agent, p, np.arange(n)) == reading
     agent.averaged_planner.module.q_network.load_state_dict(agent.planner.q_network.state_dict())
     assert bench.rank_reading(agent, p, np.arange(n)) != reading  # and it does read the greedy copy's weights
+
+
+def test_value_margin_reading_is_vs_ranking_of_the_experts_outcome_and_its_fit_moves_the_greedy_v_alone():
+    """--value-margin-steps: the reading is V's lead of Q's best proposal over the expert's predicted outcome (the
+    hinge of agent.value_margin_weight, read on the greedy policy's networks); the fit trains the greedy copy's V
+    and nothing else, and a fit that lowers the term lowers the reading it reports."""
+    from ldm_rl.planning.sampling import sample_candidates
+
+    bench = load_benchmark("pick_outcomes")
+    agent, _ = _smoke_agent(["agent.greedy_ema_decay=0.99"])
+    agent.averaged_planner.update_parameters(agent.planner)
+    greedy = agent.greedy_policy
+    rng = np.random.default_rng(0)
+    n = 6
+    heightmap = np.zeros((n, 128, 128), np.float32)
+    heightmap[:, 50:70, 50:70] = 0.03
+    p = {"heightmap": heightmap, "in_hand": rng.random((n, 24, 24)).astype(np.float32) * 0.03, "holding": True,
+         "action": np.stack([np.full(n, 60), np.full(n, 62), np.zeros(n)], 1).astype(np.int64)}
+    rows = np.arange(n)
+    gap = bench.value_margin_reading(agent, p, rows, margin=0.0)
+    with torch.no_grad():  # the same by hand: the expert's outcome against Q's proposals, V of each prediction
+        x = torch.from_numpy(heightmap).unsqueeze(1)
+        hand, holding = bench._hand(p, rows)
+        greedy.eval()
+        proposals = sample_candidates(greedy.q_network(x, hand, holding).float(), agent.loss.num_target_candidates,
+                                      **agent.loss.target_proposal)
+        actions = torch.cat((torch.from_numpy(p["action"]).unsqueeze(1), proposals), 1)
+        m = actions.shape[1]
+        pred = greedy.dynamics.predict(x.repeat_interleave(m, 0), hand.repeat_interleave(m, 0),
+                                       holding.repeat_interleave(m, 0), actions.reshape(-1, 3))
+        values = greedy.value_network(pred.heightmap, pred.in_hand).reshape(n, m)
+    torch.testing.assert_close(gap, values[:, 1:].amax(1) - values[:, 0])
+    torch.testing.assert_close(bench.value_margin_reading(agent, p, rows, margin=0.5), gap + 0.5)  # no proposal is a_E
+    online = {k: v.clone() for k, v in agent.planner.state_dict().items()}
+    untouched = {k: v.clone() for k, v in greedy.state_dict().items() if not k.startswith("value_network.")}
+    value_before = {k: v.clone() for k, v in greedy.value_network.state_dict().items()}
+    trace = bench.fit_value_margin(agent, p, rows, steps=30, lr=1e-3, margin=0.05)
+    assert len(trace) == 2 and all(np.isfinite(trace))  # steps 0 and 29
+    for key, value in agent.planner.state_dict().items():
+        assert torch.equal(value, online[key]), key  # the online networks untouched
+    for key, value in greedy.state_dict().items():
+        if key in untouched:
+            assert torch.equal(value, untouched[key]), key  # the greedy Q and LDM untouched
+    assert any(not torch.equal(v, value_before[k]) for k, v in greedy.value_network.state_dict().items())
+    after = bench.value_margin_reading(agent, p, rows, margin=0.05).clamp_min(0).mean()
+    assert after < (gap + 0.05).clamp_min(0).mean()  # 30 steps on these six states lower the hinge on them
