@@ -263,21 +263,28 @@ def test_save_weights_writes_the_fitted_q_as_a_checkpoint_that_plays(tmp_path, c
     assert fitted_cfg == meta["config"] and read_checkpoint_meta(tmp_path / "fit" / "fitted.pt")["note"] == "Q fitted"
 
 
+def _averaged_agent_and_places(n: int = 6):
+    """The smoke LDM agent trained with agent.greedy_ema_decay after one averaged update (its greedy policy is the
+    averaged copy), and ``n`` place rows as ``load_places`` gives them: a 3 cm-high square, a random in-hand image,
+    the expert's place at (60, 62), bin 0."""
+    agent, _ = _smoke_agent(["agent.greedy_ema_decay=0.99"])
+    agent.averaged_planner.update_parameters(agent.planner)
+    heightmap = np.zeros((n, 128, 128), np.float32)
+    heightmap[:, 50:70, 50:70] = 0.03
+    in_hand = np.random.default_rng(0).random((n, 24, 24)).astype(np.float32) * 0.03
+    return agent, {"heightmap": heightmap, "in_hand": in_hand, "holding": True,
+                   "action": np.stack([np.full(n, 60), np.full(n, 62), np.zeros(n)], 1).astype(np.int64)}
+
+
 def test_margin_fit_and_q_readings_act_on_the_weights_the_greedy_policy_plays():
     """A run trained with agent.greedy_ema_decay plays its averaged weights: --margin-steps fits that Q (the online
     one is left as it is) and the rank reading reads it, so a saved fit plays what was measured."""
     bench = load_benchmark("pick_outcomes")
-    agent, _ = _smoke_agent(["agent.greedy_ema_decay=0.99"])
-    agent.averaged_planner.update_parameters(agent.planner)  # one averaged update: the greedy policy is the copy
+    agent, p = _averaged_agent_and_places()
     assert agent.greedy_policy is not agent.planner
     online = {k: v.clone() for k, v in agent.planner.q_network.state_dict().items()}
     averaged = {k: v.clone() for k, v in agent.greedy_policy.q_network.state_dict().items()}
-    rng = np.random.default_rng(0)
-    n = 6
-    heightmap = np.zeros((n, 128, 128), np.float32)
-    heightmap[:, 50:70, 50:70] = 0.03
-    p = {"heightmap": heightmap, "in_hand": rng.random((n, 24, 24)).astype(np.float32) * 0.03, "holding": True,
-         "action": np.stack([np.full(n, 60), np.full(n, 62), np.zeros(n)], 1).astype(np.int64)}
+    n = len(p["action"])
     trace = bench.fit_margin(agent, p, np.arange(n), steps=3, lr=1e-2)
     assert len(trace) == 2 and all(np.isfinite(trace))  # steps 0 and 2
     for key, value in agent.planner.q_network.state_dict().items():
@@ -299,15 +306,9 @@ def test_value_margin_reading_is_vs_ranking_of_the_experts_outcome_and_its_fit_m
     from ldm_rl.planning.sampling import sample_candidates
 
     bench = load_benchmark("pick_outcomes")
-    agent, _ = _smoke_agent(["agent.greedy_ema_decay=0.99"])
-    agent.averaged_planner.update_parameters(agent.planner)
+    agent, p = _averaged_agent_and_places()
     greedy = agent.greedy_policy
-    rng = np.random.default_rng(0)
-    n = 6
-    heightmap = np.zeros((n, 128, 128), np.float32)
-    heightmap[:, 50:70, 50:70] = 0.03
-    p = {"heightmap": heightmap, "in_hand": rng.random((n, 24, 24)).astype(np.float32) * 0.03, "holding": True,
-         "action": np.stack([np.full(n, 60), np.full(n, 62), np.zeros(n)], 1).astype(np.int64)}
+    heightmap, n = p["heightmap"], len(p["action"])
     rows = np.arange(n)
     gap = bench.value_margin_reading(agent, p, rows, margin=0.0)
     with torch.no_grad():  # the same by hand: the expert's outcome against Q's proposals, V of each prediction
