@@ -409,34 +409,29 @@ def value_margin_reading(agent, p: dict, rows: np.ndarray, margin: float, batch:
     below the best of its Q's proposals (``agent.value_margin_weight``'s hinge: ``max_i [V(f(s, a_i)) + margin·1(a_i ≠
     a_E)] − V(f(s, a_E))``, the proposals those of the loss's target proposal, N = ``num_target_candidates``; Q and
     the LDM in eval mode, V in eval mode with its gradient when ``grad``): ``[n]`` float32, V's units."""
-    from ldm_rl.planning.sampling import sample_candidates
-    from ldm_rl.torch_utils import eval_mode
+    from ldm_rl.objectives.value_lookahead import expert_outcome_gaps
 
     planner, loss = agent.greedy_policy, agent.loss
-    q, model, value = planner.q_network, planner.dynamics, planner.value_network
-    out = []
-    for start in range(0, len(rows), batch):
-        r = rows[start:start + batch]
-        heightmap = torch.from_numpy(p["heightmap"][r]).unsqueeze(1)
-        in_hand, holding = _hand(p, r)
-        expert = torch.from_numpy(p["action"][r]).reshape(-1, 3).long()
-        with torch.no_grad(), eval_mode(q, model):
-            proposals = sample_candidates(q(heightmap, in_hand, holding).float(), loss.num_target_candidates,
-                                          **loss.target_proposal)  # [b, N, 3]
-            actions = torch.cat((expert.unsqueeze(1), proposals), 1)  # the expert's first
-            m = actions.shape[1]
-            predicted = model.predict(heightmap.repeat_interleave(m, 0), in_hand.repeat_interleave(m, 0),
-                                      holding.repeat_interleave(m, 0), actions.reshape(-1, 3))
+    value = planner.value_network
+
+    def score(predicted):
         training = [(module, module.training) for module in value.modules()]
         value.eval()  # its BatchNorm statistics fixed; eval_mode would also drop the gradient
         try:
             with torch.set_grad_enabled(grad):
-                values = value(predicted.heightmap, predicted.in_hand).float().reshape(-1, m)
+                return value(predicted.heightmap, predicted.in_hand).float()
         finally:
             for module, flag in training:
                 module.training = flag
-        lead = torch.where((proposals == expert.unsqueeze(1)).all(-1), 0.0, margin)
-        out.append((values[:, 1:] + lead).amax(1) - values[:, 0])
+
+    out = []
+    for start in range(0, len(rows), batch):
+        r = rows[start:start + batch]
+        in_hand, holding = _hand(p, r)
+        out.append(expert_outcome_gaps(planner.q_network, planner.dynamics, score,
+                                       torch.from_numpy(p["heightmap"][r]).unsqueeze(1), in_hand, holding,
+                                       torch.from_numpy(p["action"][r]).reshape(-1, 3).long(),
+                                       loss.num_target_candidates, margin, loss.target_proposal))
     return torch.cat(out)
 
 

@@ -113,6 +113,30 @@ def draw_value_augmentation(kind: str | None, batch: int, *, shift: int = 4, rai
     return transform
 
 
+def expert_outcome_gaps(q_network: nn.Module, dynamics: nn.Module, score, heightmap: torch.Tensor,
+                        in_hand: torch.Tensor, holding: torch.Tensor, expert: torch.Tensor, num_candidates: int,
+                        margin: float, proposal: dict | None = None) -> torch.Tensor:
+    """How far a value ranks the expert's predicted outcome below the best of Q's proposals' (the value margin term).
+
+    ``heightmap`` ``[n, 1, H, W]`` float32 (metres), ``in_hand`` ``[n, 1, h, h]``, ``holding`` ``[n]`` or ``[n, 1]``
+    bool, ``expert`` ``[n, 3]`` long (rot, row, col): the expert's actions. Q proposes ``num_candidates`` actions
+    per state (:func:`sample_candidates` with ``proposal``), the LDM predicts every outcome, Q and the LDM in eval
+    mode without gradients; ``score(predicted)`` gives ``[n·(1 + N), 1]`` values of the predicted states (the
+    caller sets V's mode and gradient). Returns ``max_i [score(f(s, a_i)) + margin·1(a_i ≠ a_E)] − score(f(s, a_E))``,
+    ``[n]`` float32 in the score's units: ≤ 0 once the expert's outcome leads every other proposal's by ``margin``.
+    """
+    with torch.no_grad(), eval_mode(q_network, dynamics):
+        proposals = sample_candidates(q_network(heightmap, in_hand, holding).float(), num_candidates,
+                                      **(proposal or {}))  # [n, N, 3]
+        actions = torch.cat((expert.unsqueeze(1), proposals), 1)  # [n, 1 + N, 3]: the expert's first
+        m = actions.shape[1]
+        predicted = dynamics.predict(heightmap.repeat_interleave(m, 0), in_hand.repeat_interleave(m, 0),
+                                     holding.repeat_interleave(m, 0), actions.reshape(-1, 3))
+    values = score(predicted).reshape(-1, m)
+    lead = torch.where((proposals == expert.unsqueeze(1)).all(-1), 0.0, margin)  # [n, N]
+    return (values[:, 1:] + lead).amax(1) - values[:, 0]
+
+
 class LookaheadLoss(TransitionLoss):
     """Q loss, V loss (real and predicted next states) and reward-head loss with lookahead targets.
 
@@ -458,18 +482,12 @@ class LookaheadLoss(TransitionLoss):
             return tensordict.get(k.heightmap).new_zeros(())
         heightmap, in_hand = (tensordict.get(key).index_select(0, rows) for key in (k.heightmap, k.in_hand))
         holding = tensordict.get(k.holding).reshape(-1, 1).bool().index_select(0, rows)
-        expert = tensordict.get(k.action).reshape(-1, 3).long().index_select(0, rows)  # [n, 3]
-        with torch.no_grad(), eval_mode(self.q_network, self.dynamics):
-            q_map = self.q_network(heightmap, in_hand, holding).float()
-            proposals = sample_candidates(q_map, self.num_target_candidates, **self.target_proposal)  # [n, N, 3]
-            actions = torch.cat((expert.unsqueeze(1), proposals), 1)  # [n, 1 + N, 3]: the expert's first
-            m = actions.shape[1]
-            predicted = self.dynamics.predict(heightmap.repeat_interleave(m, 0), in_hand.repeat_interleave(m, 0),
-                                              holding.repeat_interleave(m, 0), actions.reshape(-1, 3))
-        values = self._fitted_value(self.value_network(predicted.heightmap, predicted.in_hand).float()).reshape(-1, m)
-        lead = torch.where((proposals == expert.unsqueeze(1)).all(-1), 0.0, self.value_margin)  # [n, N]
-        top = (values[:, 1:] + lead).amax(1)
-        return (top - values[:, 0]).clamp_min(0).mean()
+        expert = tensordict.get(k.action).reshape(-1, 3).long().index_select(0, rows)
+        gaps = expert_outcome_gaps(
+            self.q_network, self.dynamics,
+            lambda predicted: self._fitted_value(self.value_network(predicted.heightmap, predicted.in_hand).float()),
+            heightmap, in_hand, holding, expert, self.num_target_candidates, self.value_margin, self.target_proposal)
+        return gaps.clamp_min(0).mean()
 
     def _fitted_value(self, value: torch.Tensor) -> torch.Tensor:
         """V ``[B, 1]`` on the scale its loss reads: itself, or ``log V`` for a log-scale V (whose V = exp(head) > 0;
