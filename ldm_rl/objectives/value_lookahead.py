@@ -119,7 +119,7 @@ def expert_outcome_gaps(q_network: nn.Module, dynamics: nn.Module, score, height
     """How far a value ranks the expert's predicted outcome below the best of Q's proposals' (the value margin term).
 
     ``heightmap`` ``[n, 1, H, W]`` float32 (metres), ``in_hand`` ``[n, 1, h, h]``, ``holding`` ``[n]`` or ``[n, 1]``
-    bool, ``expert`` ``[n, 3]`` long (rot, row, col): the expert's actions. Q proposes ``num_candidates`` actions
+    bool, ``expert`` ``[n, 3]`` long (row, col, rotation bin): the expert's actions. Q proposes ``num_candidates`` actions
     per state (:func:`sample_candidates` with ``proposal``), the LDM predicts every outcome, Q and the LDM in eval
     mode without gradients; ``score(predicted)`` gives ``[n·(1 + N), 1]`` values of the predicted states (the
     caller sets V's mode and gradient). Returns ``max_i [score(f(s, a_i)) + margin·1(a_i ≠ a_E)] − score(f(s, a_E))``,
