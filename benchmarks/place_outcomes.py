@@ -16,7 +16,9 @@ predicted pile tops (negative: V prefers the lower piles) and how often the chos
 Two diagnostics change the place decisions (not planners to train with; the picks stay with the planner):
 ``--choose lowest-top`` takes, among the candidates the world model predicts to enter the bin, the one with the lowest
 predicted pile top instead of V's best (V still decides where none enters): how low a V that read the pile off the
-predicted heightmap could keep it with these candidates and this world model. ``--choose q-first`` takes Q's first
+predicted heightmap could keep it with these candidates and this world model; with ``--top-quantile Q`` each
+candidate's pile is read with every pixel of the LDM's crop at the Q-quantile of its predicted depth classes instead
+of their mode (whether the model's distribution, not its mode, knows which places tip). ``--choose q-first`` takes Q's first
 proposal (its argmax under the greedy ``argmax`` proposal): the place Q alone would choose; ``nearest-expert`` the
 candidate nearest the noiseless scripted expert's place for the same state (pixels plus ``ROTATION_PX`` per rotation
 bin apart), and reports how near the nearest was: whether the candidates hold the expert's place. ``--expert-does places``
@@ -173,16 +175,34 @@ def decision_rows(rollout, planner, interior: torch.Tensor, min_volume: float, r
     return rows
 
 
-def choose_lowest_top(planner, task, min_volume: float) -> None:
+def quantile_heightmaps(dynamics, heightmap, in_hand, holding, candidates, quantile: float) -> torch.Tensor:
+    """``[B, N, 1, H, W]`` m: the next heightmaps of ``candidates`` ``[B, N, 3]`` with each pixel of the LDM's crop at
+    the ``quantile`` of its predicted depth-class distribution (the smallest class whose cumulative probability reaches
+    it) instead of its mode: a rise the model gives a chance below one half (a block that may tip) shows once that
+    chance exceeds ``1 − quantile``."""
+    b, n = candidates.shape[:2]
+    rows = torch.arange(b).repeat_interleave(n)
+    state = (heightmap[rows], in_hand[rows], holding.reshape(b, 1)[rows], candidates.reshape(b * n, 3))
+    logits = dynamics(*state)  # [B·N, K, S, S]
+    cumulative = torch.softmax(logits.float(), 1).cumsum(1)
+    classes = (cumulative < quantile).sum(1, keepdim=True).clamp(max=logits.shape[1] - 1)  # [B·N, 1, S, S]
+    one_hot = torch.zeros_like(logits).scatter_(1, classes, 1.0)  # its argmax is the quantile's class
+    return dynamics.next_state_from_logits(*state, one_hot).heightmap.reshape(b, n, *heightmap.shape[1:])
+
+
+def choose_lowest_top(planner, task, min_volume: float, quantile: float | None = None) -> None:
     """Make ``planner``'s place decisions by the lowest predicted pile top among the candidates predicted to enter
     ``task``'s bin (more than ``min_volume`` m^3 added inside it); picks, and places where none enters, keep its own
-    scores. Replaces the instance's ``score`` (the diagnostic of ``--choose lowest-top``)."""
+    scores. ``quantile``: the pile read from :func:`quantile_heightmaps` instead of the prediction's mode. Replaces
+    the instance's ``score`` (the diagnostic of ``--choose lowest-top``)."""
     score, resolution = planner.score, task.workspace.resolution
 
     def lowest_top(heightmap, in_hand, holding, candidates, penalty, **options):
         scores, result = score(heightmap, in_hand, holding, candidates, penalty, **{**options, "with_states": True})
         interior = torch.as_tensor(bin_interior(task))  # the bin moves with each scene
-        predicted = result.next_heightmap[:, :, 0][..., interior]  # [B, N, P] m
+        states = result.next_heightmap if quantile is None else quantile_heightmaps(
+            planner.dynamics, heightmap, in_hand, holding, candidates, quantile)
+        predicted = states[:, :, 0][..., interior]  # [B, N, P] m
         added = (predicted - heightmap[:, 0][:, interior][:, None]).clamp(min=0).sum(-1) * resolution ** 2
         entering = added > min_volume  # [B, N]
         tops = torch.where(entering, -predicted.amax(-1), torch.full_like(scores, -math.inf))
@@ -304,6 +324,9 @@ def parse_args(argv=None):
                         help="how the places are chosen: by the planner (value) or, diagnostics, by the lowest "
                              "predicted pile top among the candidates predicted to enter the bin, Q's argmax, or the "
                              "candidate nearest the scripted expert's place")
+    parser.add_argument("--top-quantile", type=float, default=None, metavar="Q",
+                        help="with --choose lowest-top: read each candidate's pile at the Q-quantile of the LDM's "
+                             "per-pixel depth classes instead of their mode (in (0, 1))")
     parser.add_argument("--expert-does", choices=("places", "picks"), default=None,
                         help="the scripted expert takes these primitives, the checkpoint's policy the others")
     parser.add_argument("--place-weights", default=None, metavar="CHECKPOINT",
@@ -314,6 +337,9 @@ def parse_args(argv=None):
         parser.error(f"--place-weights {args.place_weights} makes the places: leave out --expert-does")
     if args.expert_does and args.choose != "value":
         parser.error(f"--expert-does {args.expert_does} leaves no place decision to --choose {args.choose}: give one")
+    if args.top_quantile is not None and (args.choose != "lowest-top" or not 0 < args.top_quantile < 1):
+        parser.error(f"--top-quantile must be in (0, 1) and go with --choose lowest-top, got {args.top_quantile} "
+                     f"with --choose {args.choose}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if not 0 < args.tilt < 90:
@@ -369,7 +395,7 @@ def main(argv=None) -> None:
     if args.choose != "value" and planner is None:
         sys.exit(f"error: --choose {args.choose} needs an LDM agent's checkpoint, {args.checkpoint} is {agent.name}'s")
     if args.choose == "lowest-top":
-        choose_lowest_top(planner, task, args.min_volume)
+        choose_lowest_top(planner, task, args.min_volume, args.top_quantile)
     elif args.choose == "q-first":
         if planner.greedy_proposal != "argmax":
             sys.exit(f"error: --choose q-first needs the greedy proposal 'argmax' (Q's argmax first), "
@@ -393,7 +419,8 @@ def main(argv=None) -> None:
         expert_places, expert_tops = play(env, task, expert_policy(env), args.episodes, args.seed, args.tilt)
     print(f"{args.checkpoint}, {args.episodes} held-out scenes (seed {args.seed})"
           + (f", planner {args.planner}" if args.planner else "")
-          + {"value": "", "lowest-top": ", places chosen by the lowest predicted pile top",
+          + {"value": "", "lowest-top": ", places chosen by the lowest predicted pile top"
+                 + (f" (each pixel at the {args.top_quantile:g}-quantile of its depth classes)" if args.top_quantile else ""),
              "q-first": ", places at Q's argmax", "nearest-expert": ", places at the candidate nearest the expert's"}[args.choose]
           + (f", the scripted expert's {args.expert_does}" if args.expert_does else "")
           + (f", places by {args.place_weights}" if args.place_weights else ""))

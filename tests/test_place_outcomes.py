@@ -78,6 +78,8 @@ def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
     (["--tilt", "90"], "--tilt must be in (0, 90) degrees, got 90.0"),
     (["--planner", "name"], "--planner takes KEY=VALUE items, got 'name'"),
     (["--place-weights", "fit.pt", "--expert-does", "picks"], "--place-weights fit.pt makes the places: leave out"),
+    (["--top-quantile", "0.9"], "--top-quantile must be in (0, 1) and go with --choose lowest-top, got 0.9 with --choose value"),
+    (["--choose", "lowest-top", "--top-quantile", "1"], "--top-quantile must be in (0, 1)"),
 ])
 def test_place_outcomes_refuses_bad_arguments_in_one_line(argv, message, capsys):
     bench = load_benchmark("place_outcomes")
@@ -243,3 +245,28 @@ def test_place_weights_of_another_task_or_a_missing_file_stop_in_one_line_before
             bench.main([str(paths["bin_packing"]), "--episodes", "1", "--place-weights", str(placer)])
         message = str(stop.value)
         assert message.startswith("error: ") and expected in message and "\n" not in message
+
+
+def test_quantile_heightmaps_rise_with_the_quantile_and_meet_the_mode_where_the_model_is_sure():
+    from dyn_helpers import block_scenes, tiny_model
+
+    bench = load_benchmark("place_outcomes")
+    dynamics = tiny_model()
+    heightmap = block_scenes(2)
+    in_hand, holding = torch.zeros(2, 1, 24, 24), torch.ones(2, 1, dtype=torch.bool)
+    candidates = torch.tensor([[[40, 50, 0], [70, 30, 3], [90, 90, 5]]] * 2)
+    with torch.no_grad():
+        low, mid, high = (bench.quantile_heightmaps(dynamics, heightmap, in_hand, holding, candidates, q)
+                          for q in (0.1, 0.5, 0.9))
+        assert low.shape == (2, 3, 1, 128, 128)
+        assert (low <= mid).all() and (mid <= high).all() and (high > low).any()  # random weights: spread classes
+        mode = dynamics.predict(heightmap[[0, 0, 0, 1, 1, 1]], in_hand[[0] * 3 + [1] * 3], holding[[0] * 3 + [1] * 3],
+                                candidates.reshape(6, 3)).heightmap.reshape(2, 3, 1, 128, 128)
+        outside = (low == mid) & (mid == high)  # pixels the crop does not reach keep the scene
+        assert torch.equal(mode[outside], low[outside])
+        # a model sure of one class per pixel: every quantile is its mode
+        forward = dynamics.forward
+        dynamics.forward = lambda *state: 50.0 * torch.nn.functional.one_hot(
+            forward(*state).argmax(1), dynamics.num_classes).movedim(-1, 1).float()
+        sure = [bench.quantile_heightmaps(dynamics, heightmap, in_hand, holding, candidates, q) for q in (0.1, 0.9)]
+        assert torch.equal(sure[0], sure[1]) and torch.equal(sure[0], mode)
