@@ -26,7 +26,9 @@ bin apart), and reports how near the nearest was: whether the candidates hold th
 tells the part the pick order plays from the part the places play. ``--place-weights CHECKPOINT`` hands the places to
 another checkpoint's greedy planner (``pick_outcomes.py --places --margin-steps K --save-weights``: the same weights with
 Q's place map fitted), the picks staying with the first: what a sharper place map alone does to the pile (``--choose``
-then acts on that planner's places).
+then acts on that planner's places). ``--place-planner KEY=VALUE ...`` gives the places' planner its own settings
+over ``--planner``'s (alone: the checkpoint's own weights under them), e.g. ``--planner q_blend=1.0 --place-planner
+q_blend=0.0``: Q picks, V places, which splits a pile between the two choices on the same weights.
 """
 
 from __future__ import annotations
@@ -332,6 +334,9 @@ def parse_args(argv=None):
     parser.add_argument("--place-weights", default=None, metavar="CHECKPOINT",
                         help="another checkpoint of the same run's kind whose greedy planner makes the places (e.g. "
                              "pick_outcomes.py --save-weights' fit), the checkpoint's the picks")
+    parser.add_argument("--place-planner", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="planner settings of the places' planner over --planner's (with --place-weights, or alone: "
+                             "the checkpoint's own weights make the places under these settings, e.g. q_blend=0)")
     args = parser.parse_args(argv)
     if args.place_weights and args.expert_does:
         parser.error(f"--place-weights {args.place_weights} makes the places: leave out --expert-does")
@@ -344,13 +349,16 @@ def parse_args(argv=None):
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if not 0 < args.tilt < 90:
         parser.error(f"--tilt must be in (0, 90) degrees, got {args.tilt}")
-    planner = {}
-    for item in args.planner:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            parser.error(f"--planner takes KEY=VALUE items, got {item!r}")
-        planner[key] = _number(value)
-    args.planner = planner
+    for name in ("planner", "place_planner"):
+        settings = {}
+        for item in getattr(args, name):
+            key, sep, value = item.partition("=")
+            if not sep or not key:
+                parser.error(f"--{name.replace('_', '-')} takes KEY=VALUE items, got {item!r}")
+            settings[key] = _number(value)
+        setattr(args, name, settings)
+    if args.place_planner and args.expert_does:
+        parser.error(f"--place-planner {args.place_planner} sets the places' planner: leave out --expert-does")
     return args
 
 
@@ -383,14 +391,15 @@ def main(argv=None) -> None:
         sys.exit(f"error: {args.checkpoint} plays {cfg['env']['id']}, not bin packing")
     task = unwrap(env)
     planner = agent.greedy_policy if agent.name == "ldm" else None
-    if args.place_weights:  # the places' planner: the one --choose acts on and the decision readings read
+    if args.place_weights or args.place_planner:  # the places' planner: the one --choose acts on and the readings read
         try:
-            placer, place_cfg = load_agent(args.place_weights, planner=args.planner or None)
+            placer, place_cfg = load_agent(args.place_weights or args.checkpoint,
+                                           planner={**args.planner, **args.place_planner} or None)
         except (CheckpointError, ValueError) as err:
             sys.exit(f"error: {err}")
         if placer.name != "ldm" or planner is None or place_cfg["env"]["id"] != cfg["env"]["id"]:
-            sys.exit(f"error: --place-weights needs two LDM checkpoints of one task; {args.place_weights} holds "
-                     f"{placer.name!r} on {place_cfg['env']['id']}, {args.checkpoint} {agent.name!r} on {cfg['env']['id']}")
+            sys.exit(f"error: --place-weights / --place-planner need LDM checkpoints of one task; {args.place_weights} "
+                     f"holds {placer.name!r} on {place_cfg['env']['id']}, {args.checkpoint} {agent.name!r} on {cfg['env']['id']}")
         planner = placer.greedy_policy
     if args.choose != "value" and planner is None:
         sys.exit(f"error: --choose {args.choose} needs an LDM agent's checkpoint, {args.checkpoint} is {agent.name}'s")
@@ -409,7 +418,7 @@ def main(argv=None) -> None:
         decisions.extend(decision_rows(rollout, planner, interior, args.min_volume, task.workspace.resolution))
 
     policy = agent.evaluation_policy()
-    if args.place_weights:
+    if args.place_weights or args.place_planner:
         policy = route_places(policy, placer.evaluation_policy())
     if args.expert_does:
         policy, planner = split_policy(policy, expert_policy(env), args.expert_does), None
@@ -423,7 +432,8 @@ def main(argv=None) -> None:
                  + (f" (each pixel at the {args.top_quantile:g}-quantile of its depth classes)" if args.top_quantile else ""),
              "q-first": ", places at Q's argmax", "nearest-expert": ", places at the candidate nearest the expert's"}[args.choose]
           + (f", the scripted expert's {args.expert_does}" if args.expert_does else "")
-          + (f", places by {args.place_weights}" if args.place_weights else ""))
+          + (f", places by {args.place_weights}" if args.place_weights else "")
+          + (f", the places' planner {args.place_planner}" if args.place_planner else ""))
     print("| who | packed | mean pile top of the packs | places into the bin | resting tilted | raised | tilted in the hand "
           "| level but turned > 10° off the walls |")
     print("|---|---|---|---|---|---|---|---|")

@@ -78,6 +78,8 @@ def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
     (["--tilt", "90"], "--tilt must be in (0, 90) degrees, got 90.0"),
     (["--planner", "name"], "--planner takes KEY=VALUE items, got 'name'"),
     (["--place-weights", "fit.pt", "--expert-does", "picks"], "--place-weights fit.pt makes the places: leave out"),
+    (["--place-planner", "q_blend"], "--place-planner takes KEY=VALUE items, got 'q_blend'"),
+    (["--place-planner", "q_blend=0", "--expert-does", "picks"], "--place-planner {'q_blend': 0} sets the places' planner"),
     (["--top-quantile", "0.9"], "--top-quantile must be in (0, 1) and go with --choose lowest-top, got 0.9 with --choose value"),
     (["--choose", "lowest-top", "--top-quantile", "1"], "--top-quantile must be in (0, 1)"),
 ])
@@ -93,6 +95,8 @@ def test_planner_settings_are_read_as_numbers_and_flags():
     args = bench.parse_args(["c.pt", "--planner", "uncertainty_penalty=0.25", "name=tree", "depth=2",
                              "empty_picks_last=true"])
     assert args.planner == {"uncertainty_penalty": 0.25, "name": "tree", "depth": 2, "empty_picks_last": True}
+    args = bench.parse_args(["c.pt", "--planner", "q_blend=1.0", "--place-planner", "q_blend=0"])
+    assert args.planner == {"q_blend": 1.0} and args.place_planner == {"q_blend": 0}
 
 
 def test_place_outcomes_refuses_a_missing_checkpoint_in_one_line(tmp_path, capsys):
@@ -239,7 +243,7 @@ def test_place_weights_of_another_task_or_a_missing_file_stop_in_one_line_before
                 "config": OmegaConf.to_container(OmegaConf.create(stored), resolve=True)}
         agent = build_agent(cfg, float(cfg.env.max_height))
         paths[env] = save_checkpoint(tmp_path / f"{env}.pt", {"agent": agent.policy_state_dict()}, meta=meta)
-    for placer, expected in ((paths["block_stacking"], "needs two LDM checkpoints of one task"),
+    for placer, expected in ((paths["block_stacking"], "need LDM checkpoints of one task"),
                              (tmp_path / "nowhere.pt", "nowhere.pt")):
         with pytest.raises(SystemExit) as stop:
             bench.main([str(paths["bin_packing"]), "--episodes", "1", "--place-weights", str(placer)])
