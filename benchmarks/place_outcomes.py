@@ -181,11 +181,14 @@ def quantile_heightmaps(dynamics, heightmap, in_hand, holding, candidates, quant
     """``[B, N, 1, H, W]`` m: the next heightmaps of ``candidates`` ``[B, N, 3]`` with each pixel of the LDM's crop at
     the ``quantile`` of its predicted depth-class distribution (the smallest class whose cumulative probability reaches
     it) instead of its mode: a rise the model gives a chance below one half (a block that may tip) shows once that
-    chance exceeds ``1 − quantile``."""
+    chance exceeds ``1 − quantile`` (the LDM in eval mode)."""
+    from ldm_rl.torch_utils import eval_mode
+
     b, n = candidates.shape[:2]
     rows = torch.arange(b).repeat_interleave(n)
     state = (heightmap[rows], in_hand[rows], holding.reshape(b, 1)[rows], candidates.reshape(b * n, 3))
-    logits = dynamics(*state)  # [B·N, K, S, S]
+    with eval_mode(dynamics):
+        logits = dynamics(*state)  # [B·N, K, S, S]
     cumulative = torch.softmax(logits.float(), 1).cumsum(1)
     classes = (cumulative < quantile).sum(1, keepdim=True).clamp(max=logits.shape[1] - 1)  # [B·N, 1, S, S]
     one_hot = torch.zeros_like(logits).scatter_(1, classes, 1.0)  # its argmax is the quantile's class
