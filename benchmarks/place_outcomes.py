@@ -105,23 +105,27 @@ def block_states(task) -> dict[int, dict]:
         rotation = np.array(pb.getMatrixFromQuaternion(list(quaternion))).reshape(3, 3)
         states[obj.body] = {"in_bin": bool(task.bin.contains(position)), "tilt": float(tilt_degrees(rotation)),
                             "yaw_off": float(yaw_off_axes(rotation, task.bin.yaw)),
-                            "height": float(high[2] - low[2]), "lying": lying_height(obj.half_extents)}
+                            "height": float(high[2] - low[2]), "lying": lying_height(obj.half_extents),
+                            "volume": float(8 * np.prod(obj.half_extents))}
     return states
 
 
 def place_rows(snapshots: list[dict], tilt: float, yaw: float = 10.0) -> list[dict]:
     """One row per place into the bin from the per-decision ``snapshots`` (``held``: the held body or None,
     ``blocks``: :func:`block_states`, plus the one after the last decision); ``turned``: the block rests level
-    (not ``tilt``-ed) with its sides more than ``yaw`` degrees off the bin's walls."""
+    (not ``tilt``-ed) with its sides more than ``yaw`` degrees off the bin's walls; ``largest``: the block was the
+    largest (by volume) of those not yet in the bin when it was placed (the scripted expert packs largest first)."""
     rows = []
     for before, after in zip(snapshots[:-1], snapshots[1:]):
         body = before["held"]
         if body is None or after["held"] is not None or not after["blocks"][body]["in_bin"]:
             continue
         rest = after["blocks"][body]
+        left = [b["volume"] for key, b in before["blocks"].items() if key != body and not b["in_bin"]]
         rows.append({"tilted": rest["tilt"] > tilt, "raised": rest["height"] > rest["lying"] + RAISED_SLACK,
                      "tilted_in_hand": before["blocks"][body]["tilt"] > tilt, "step": before["step"],
-                     "turned": rest["tilt"] <= tilt and rest["yaw_off"] > yaw})
+                     "turned": rest["tilt"] <= tilt and rest["yaw_off"] > yaw,
+                     "largest": rest["volume"] >= max(left, default=0.0) - 1e-12})
     return rows
 
 
@@ -310,9 +314,10 @@ def summary(name: str, places: list[dict], tops: list[float], episodes: int) -> 
     raised = np.mean([p["raised"] for p in places]) if places else float("nan")
     in_hand = np.mean([p["tilted_in_hand"] for p in places]) if places else float("nan")
     turned = np.mean([p["turned"] for p in places]) if places else float("nan")
+    largest = np.mean([p["largest"] for p in places]) if places else float("nan")
     top = f"{100 * np.mean(tops):.1f} cm" if tops else "-"
     return (f"| {name} | {len(tops)} / {episodes} | {top} | {len(places)} | {100 * tilted:.0f} % | {100 * raised:.0f} % "
-            f"| {100 * in_hand:.0f} % | {100 * turned:.0f} % |")
+            f"| {100 * in_hand:.0f} % | {100 * turned:.0f} % | {100 * largest:.0f} % |")
 
 
 def parse_args(argv=None):
@@ -438,8 +443,8 @@ def main(argv=None) -> None:
           + (f", places by {args.place_weights}" if args.place_weights else "")
           + (f", the places' planner {args.place_planner}" if args.place_planner else ""))
     print("| who | packed | mean pile top of the packs | places into the bin | resting tilted | raised | tilted in the hand "
-          "| level but turned > 10° off the walls |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| level but turned > 10° off the walls | the largest block left |")
+    print("|---|---|---|---|---|---|---|---|---|")
     who = f"{agent.name} agent" + (f", the expert's {args.expert_does}" if args.expert_does else "")
     print(summary(who, agent_places, agent_tops, args.episodes))
     print(summary("scripted expert", expert_places, expert_tops, args.episodes))

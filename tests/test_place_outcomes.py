@@ -50,8 +50,8 @@ def test_rank_correlation_is_spearmans_with_ties_and_nan_for_constants():
     assert bench.rank_correlation(np.array([1.0, 1.0, 3.0]), np.array([1.0, 2.0, 3.0])) == pytest.approx(expect)
 
 
-def block(in_bin=True, tilt=0.0, height=0.04, lying=0.04, yaw_off=0.0):
-    return {"in_bin": in_bin, "tilt": tilt, "height": height, "lying": lying, "yaw_off": yaw_off}
+def block(in_bin=True, tilt=0.0, height=0.04, lying=0.04, yaw_off=0.0, volume=6.4e-5):
+    return {"in_bin": in_bin, "tilt": tilt, "height": height, "lying": lying, "yaw_off": yaw_off, "volume": volume}
 
 
 def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
@@ -64,13 +64,17 @@ def test_place_rows_keep_only_places_into_the_bin_and_read_the_rest_pose():
         {"held": None, "step": 4, "blocks": {1: block(tilt=25.0, height=0.09), 2: block(in_bin=False, height=0.043)}},
     ]
     rows = bench.place_rows(snapshots, tilt=10.0)
-    assert rows == [{"tilted": True, "raised": True, "tilted_in_hand": True, "step": 1, "turned": False}]
+    assert rows == [{"tilted": True, "raised": True, "tilted_in_hand": True, "step": 1, "turned": False, "largest": True}]
     snapshots[2]["blocks"][1] = block(tilt=5.0, height=0.045, yaw_off=8.0)  # level, within the 6 mm slack
     snapshots[1]["blocks"][1] = block(in_bin=False, tilt=5.0)
     assert bench.place_rows(snapshots, tilt=10.0) == [
-        {"tilted": False, "raised": False, "tilted_in_hand": False, "step": 1, "turned": False}]
+        {"tilted": False, "raised": False, "tilted_in_hand": False, "step": 1, "turned": False, "largest": True}]
     snapshots[2]["blocks"][1]["yaw_off"] = 30.0  # level but turned against the walls
     assert bench.place_rows(snapshots, tilt=10.0)[0]["turned"]
+    snapshots[1]["blocks"][2]["volume"] = 1e-4  # a larger block was still outside: not the largest first
+    assert not bench.place_rows(snapshots, tilt=10.0)[0]["largest"]
+    snapshots[1]["blocks"][2]["in_bin"] = True  # ... unless it was already in the bin
+    assert bench.place_rows(snapshots, tilt=10.0)[0]["largest"]
 
 
 @pytest.mark.parametrize("argv, message", [
