@@ -26,7 +26,7 @@ import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, List, Mapping, Optional
+from typing import Any, Callable, ClassVar, List, Mapping, Optional
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
@@ -695,6 +695,9 @@ class TrainPolicyConfig(RunSettings):
     collector: CollectorConfig = group(CollectorConfig)
     resume: bool = False
     compile: bool = spec(False, doc="torch.compile the inference passes (decisions, lookahead targets)")
+    # keys a resumed run may change: they only say when the loop stops, so a finished run given a larger budget
+    # continues as the run with that budget from the start would have (tests/test_policy_recipe.py)
+    RESUME_MAY_CHANGE: ClassVar[tuple[str, ...]] = ("schedule.total_episodes", "schedule.max_wall_clock_s")
 
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:

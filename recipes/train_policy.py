@@ -4,6 +4,7 @@
     python recipes/train_policy.py experiment=stacking_lite            # the 40-minute CPU acceptance run
     python recipes/train_policy.py env=house_building schedule.total_episodes=5000
     python recipes/train_policy.py -m seed=0,1 experiment=stacking_lite
+    python recipes/train_policy.py resume=true hydra.run.dir=<run> schedule.total_episodes=1100  # a longer budget
 
 The loop, in order: seed the replay buffer with expert episodes → (optional) LDM-only pretraining →
 collect one step at a time with a TorchRL ``Collector`` running the planner (exploring) → push finished
@@ -262,6 +263,11 @@ def train(cfg: DictConfig) -> dict:
         spent = budget_spent()
         if spent:
             log.info(f"the budget was spent at {counters['episodes']} episodes: final evaluation only")
+        elif resuming and (out_dir / "final_metrics.json").exists():  # a finished run given a larger budget
+            earlier = out_dir / f"final_metrics_at_{counters['episodes']}_episodes.json"
+            (out_dir / "final_metrics.json").replace(earlier)
+            log.info(f"extending a finished run from {counters['episodes']} episodes: its final metrics moved to "
+                     f"{earlier.name}")
         for step in () if spent else collected_steps(collector):  # one transition at a time; worker weights refreshed per batch
             episode = episodes.add(step)
             counters["env_steps"] += 1

@@ -217,6 +217,38 @@ def test_a_run_stopped_in_its_final_evaluation_resumes_to_that_evaluation_only(s
 
 
 @pytest.mark.slow
+def test_a_finished_run_given_a_larger_budget_ends_as_a_run_with_that_budget_from_the_start(smoke_run, tmp_path):
+    """``schedule.total_episodes`` only says when the loop stops: resuming a finished run with a larger one is
+    allowed (any other change is refused), goes on from its checkpoint, keeps the earlier final metrics under their
+    episode count, and ends with the weights and curve of the run that had the larger budget from the start."""
+    import shutil
+
+    import torch
+
+    from ldm_rl.run.checkpoint import load_checkpoint
+
+    out, _ = smoke_run
+    finished = json.loads((out / "final_metrics.json").read_text())
+    larger = f"schedule.total_episodes={finished['episodes'] + 1}"
+    extended = tmp_path / "extended"
+    shutil.copytree(out, extended)
+    resumed = run("train_policy.py", "resume=true", f"hydra.run.dir={extended}", larger, cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert json.loads((extended / f"final_metrics_at_{finished['episodes']}_episodes.json").read_text()) == finished
+    assert json.loads((extended / "final_metrics.json").read_text())["episodes"] == finished["episodes"] + 1
+    direct = tmp_path / "direct"
+    proc = run("train_policy.py", *SMOKE, larger, f"hydra.run.dir={direct}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    a = load_checkpoint(direct / "checkpoint.pt").state
+    b = load_checkpoint(extended / "checkpoint.pt").state
+    assert a["counters"] == b["counters"]
+    assert all(torch.equal(a["agent"][k], b["agent"][k]) for k in a["agent"])
+    drop = ("wall_s",)
+    assert [{k: v for k, v in r.items() if k not in drop} for r in a["curve"]] == \
+        [{k: v for k, v in r.items() if k not in drop} for r in b["curve"]]
+
+
+@pytest.mark.slow
 def test_sigterm_saves_and_exits_with_one_line(tmp_path):
     """A wall-clock-bound run: progress in minutes of its budget, the first signal says what the run waits
     for, the stop line names the budget, and the folder then refuses a fresh start naming the episode, and a

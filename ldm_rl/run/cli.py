@@ -269,10 +269,11 @@ def _check(recipe_file, argv, args, config_path, config_name, checkpoint_name, s
                 given = _resolved_task_config(cfg)
             except Exception as err:
                 _fail(_omegaconf_line(err))
-            diffs = config_differences(meta.get("config", {}), given, schema=schema)
+            ignore = ("resume", "device", *getattr(schema, "RESUME_MAY_CHANGE", ()))
+            diffs = config_differences(meta.get("config", {}), given, ignore=ignore, schema=schema)
             if diffs:
                 shown = "; ".join(diffs[:6]) + ("; ..." if len(diffs) > 6 else "")
-                fix = resume_overrides(meta.get("config", {}), given, schema=schema)
+                fix = resume_overrides(meta.get("config", {}), given, ignore=ignore, schema=schema)
                 hint = f"; to resume it as it ran, add: {' '.join(fix)}" if fix and len(fix) == len(diffs) else ""
                 _fail(f"resume=true: this command's config differs from the run's in {checkpoint}: {shown} (a resumed run "
                       f"keeps its config; start a new run to change it){hint}")
