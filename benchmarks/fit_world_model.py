@@ -59,7 +59,12 @@ def main() -> None:
         parser.error(f"{args.run}: no checkpoint.pt (pass a training run's folder)")
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)
-    agent, cfg, replay = load_run(args.run)
+    from ldm_rl.run.checkpoint import CheckpointError
+
+    try:
+        agent, cfg, replay = load_run(args.run)
+    except CheckpointError as err:  # another agent's run, or a damaged checkpoint
+        parser.error(str(err))
     replay.generator.manual_seed(args.seed)
     print(f"{args.run}: {len(replay)} transitions; {args.steps} LDM-only steps, batch {cfg['replay']['batch_size']}")
     print("| steps | focal loss (mean over the batches since the last row) | pixel accuracy (the same) |")

@@ -31,6 +31,16 @@ def test_a_folder_without_a_checkpoint_stops_in_one_line(tmp_path):
     assert proc.returncode == 2 and "no checkpoint.pt (pass a training run's folder)" in proc.stderr, proc.stderr
 
 
+def test_another_agents_run_stops_in_one_line_naming_the_agent(tmp_path):
+    from ldm_rl.run.checkpoint import save_checkpoint
+
+    save_checkpoint(tmp_path / "checkpoint.pt", {"agent": {}}, meta={"kind": "agent", "agent": "fcdqn"})
+    proc = fit(str(tmp_path))
+    last = proc.stderr.strip().splitlines()[-1]  # argparse's usage, then one error line
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert last.startswith("fit_world_model.py: error: ") and last.endswith("agent is 'fcdqn', expected 'ldm'"), last
+
+
 @pytest.mark.slow
 def test_the_fitted_world_model_is_the_one_the_greedy_planner_plans_with_and_nothing_else_moves(tmp_path):
     import torch
