@@ -142,10 +142,7 @@ def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0)
     agent = build_agent(cfg, max_height)
     if cfg.compile:
         compile_inference(agent)
-    replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=int(cfg.model.num_depth_classes),
-                         return_gamma=float(cfg.agent.gamma) if cfg.agent.return_lower_bound else None,
-                         batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),
-                         priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus))
+    replay = FrameReplay.from_config(cfg, in_ram=True)
     for episode in expert_episodes(cfg):
         replay.extend_episode(episode)  # its own per-step is_expert flags
     for _ in range(int(cfg.schedule.pretrain_updates)):

@@ -35,12 +35,7 @@ def load_run(run: Path):
     agent = build_agent(cfg, float(cfg["env"]["max_height"]))
     agent.load_state_dict(checkpoint.state["agent"])
     agent.load_training_state(checkpoint.state["training"])
-    r = cfg["replay"]
-    replay = FrameReplay(int(r["capacity"]), max_height=float(cfg["env"]["max_height"]),
-                         num_classes=int(cfg["model"]["num_depth_classes"]),
-                         return_gamma=float(cfg["agent"]["gamma"]) if cfg["agent"].get("return_lower_bound") else None,
-                         batch_size=int(r["batch_size"]), alpha=float(r["alpha"]), priority_eps=float(r["priority_eps"]),
-                         expert_bonus=float(r["expert_bonus"]))
+    replay = FrameReplay.from_config(cfg, in_ram=True)
     replay.loads(run / checkpoint.state["replay_dir"])
     return agent, cfg, replay
 

@@ -36,12 +36,7 @@ def build(checkpoint: str):
     agent, cfg = load_agent(checkpoint)
     if agent.name != "ldm":
         raise SystemExit(f"{checkpoint} holds agent {agent.name!r}: this benchmark splits the LDM agent's update")
-    replay_cfg, agent_cfg = cfg["replay"], cfg["agent"]
-    replay = FrameReplay(int(replay_cfg["capacity"]), max_height=float(cfg["env"]["max_height"]),
-                         num_classes=int(cfg["model"]["num_depth_classes"]),
-                         return_gamma=float(agent_cfg["gamma"]) if agent_cfg.get("return_lower_bound") else None,
-                         batch_size=int(replay_cfg["batch_size"]), alpha=float(replay_cfg["alpha"]),
-                         priority_eps=float(replay_cfg["priority_eps"]), expert_bonus=float(replay_cfg["expert_bonus"]))
+    replay = FrameReplay.from_config(cfg, in_ram=True)
     state = load_checkpoint(checkpoint).state
     replay.loads(Path(checkpoint).parent / state["replay_dir"])
     return agent, replay, cfg

@@ -150,11 +150,7 @@ def train(cfg: DictConfig) -> dict:
     agent = build_agent(cfg, max_height).to(device)
     if cfg.compile:  # inference passes (decisions, lookahead targets) through inductor, compiled on first use
         compile_inference(agent)
-    replay = FrameReplay(int(cfg.replay.capacity), max_height=max_height, num_classes=int(cfg.model.num_depth_classes),
-                         return_gamma=float(cfg.agent.gamma) if cfg.agent.return_lower_bound else None,
-                         batch_size=int(cfg.replay.batch_size), alpha=float(cfg.replay.alpha),
-                         priority_eps=float(cfg.replay.priority_eps), expert_bonus=float(cfg.replay.expert_bonus),
-                         scratch_dir=cfg.replay.scratch_dir)
+    replay = FrameReplay.from_config(cfg)
     beta = instantiate(cfg.replay.beta)
     task = f"{cfg.env.id} ({cfg.env.num_objects} objects)"
     # the k-th training episode's scene comes from seed reset_seed + k, so a resumed run replays the same scenes

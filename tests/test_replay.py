@@ -566,3 +566,27 @@ def test_dumps_writes_only_the_stored_frames_and_checks_return_gamma(tmp_path):
     assert torch.equal(stored(rb)["return_to_go"], stored(again)["return_to_go"])
     with pytest.raises(ValueError, match="return_gamma=0.9 but this buffer has return_gamma=None"):
         make_buffer(10_000).loads(tmp_path / "ckpt")
+
+
+def test_from_config_reads_the_run_config_composed_or_saved(tmp_path):
+    """The replay of a composed train_policy config (the recipe's) and of the plain dict a checkpoint saves (the
+    benchmarks') have the config's settings; ``in_ram`` keeps frames in RAM whatever ``replay.scratch_dir`` says."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    root = Path(__file__).resolve().parents[1]
+    overrides = ["experiment=curves_bin_packing", "replay.capacity=500", "replay.batch_size=7", "replay.alpha=0.3",
+                 "agent.return_lower_bound=true", "agent.gamma=0.8", f"replay.scratch_dir={tmp_path / 'frames'}"]
+    with initialize_config_dir(config_dir=str(root / "conf"), version_base="1.3"):
+        cfg = compose(config_name="train_policy", overrides=overrides)
+    saved = {group: OmegaConf.to_container(cfg[group], resolve=True) for group in ("replay", "agent", "env", "model")}
+    for config in (cfg, saved):
+        built = FrameReplay.from_config(config)
+        assert (built.capacity, built.batch_size, built.alpha, built.return_gamma) == (500, 7, 0.3, 0.8)
+        assert built.max_height == float(cfg.env.max_height) and built.num_classes == int(cfg.model.num_depth_classes)
+        assert built.expert_bonus == float(cfg.replay.expert_bonus) and built.scratch_dir == str(tmp_path / "frames")
+        assert FrameReplay.from_config(config, in_ram=True).scratch_dir is None
+    saved["agent"]["return_lower_bound"] = False
+    assert FrameReplay.from_config(saved).return_gamma is None

@@ -391,6 +391,20 @@ class FrameReplay:
         self._heights = classes_to_heights(torch.arange(num_classes, dtype=torch.uint8), self.max_height, num_classes)
         self._max_priority = 1.0
 
+    @classmethod
+    def from_config(cls, cfg, *, in_ram: bool = False) -> "FrameReplay":
+        """The replay a ``train_policy`` run uses, from its whole config (the composed ``DictConfig`` or the
+        plain dict a checkpoint holds): sizes and PER settings from ``replay``, ``max_height`` from ``env``, the
+        depth classes from ``model``, ``return_gamma`` = ``agent.gamma`` where ``agent.return_lower_bound`` is on.
+        Frames live in ``replay.scratch_dir`` where set, unless ``in_ram`` (a copy read beside the run's own)."""
+        replay, agent = cfg["replay"], cfg["agent"]
+        return cls(int(replay["capacity"]), max_height=float(cfg["env"]["max_height"]),
+                   num_classes=int(cfg["model"]["num_depth_classes"]),
+                   return_gamma=float(agent["gamma"]) if agent.get("return_lower_bound") else None,
+                   batch_size=int(replay["batch_size"]), alpha=float(replay["alpha"]),
+                   priority_eps=float(replay["priority_eps"]), expert_bonus=float(replay["expert_bonus"]),
+                   scratch_dir=None if in_ram else replay.get("scratch_dir"))
+
     # ---------------------------------------------------------------- properties
     @property
     def buffer(self) -> ReplayBuffer:
