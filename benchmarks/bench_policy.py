@@ -112,7 +112,7 @@ def timed(fn, repeats: int, device: torch.device | str = "cpu") -> tuple[float, 
     return first, min(times), statistics.median(times)
 
 
-PHASES = ("act", "env", "replay", "ldm loss", "targets", "q/v losses", "backward", "optimiser", "averaging")
+PHASES = ("act", "env", "replay", "imagine", "ldm loss", "targets", "q/v losses", "backward", "optimiser", "averaging")
 
 
 def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0) -> dict[str, float]:
@@ -171,7 +171,10 @@ def training_steps(overrides: list[str], steps: int, warmup: int, seed: int = 0)
     # the lookahead loss's forward calls ``_targets`` (targets and the proposal fit's scores), the others ``targets``
     timed_method(agent.loss, "_targets" if hasattr(agent.loss, "_targets") else "targets", "targets")
     timed_method(agent.loss, "forward", "q/v losses", minus=("targets",))
-    timed_method(agent.dynamics_loss, "forward", "ldm loss")
+    if hasattr(agent, "dynamics_loss"):  # every agent but FC-DQN trains an LDM
+        timed_method(agent.dynamics_loss, "forward", "ldm loss")
+    if hasattr(agent, "imagine"):  # agent=dynaq: the imagined transitions (the exploring Q map, LDM, reward head)
+        timed_method(agent, "imagine", "imagine")
     for opt in agent.optimizers.values():
         timed_method(opt, "step", "optimiser")
     if agent.averaged_planner is not None:  # agent.greedy_ema_decay: the greedy policy's weight average
