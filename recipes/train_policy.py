@@ -114,7 +114,6 @@ def main(cfg: DictConfig) -> dict:
 
 def train(cfg: DictConfig) -> dict:
     """Seed, pretrain, collect, update, evaluate, checkpoint (see the module docstring)."""
-    import torch
     from hydra.utils import instantiate
 
     from ldm_rl.agents import build_agent
