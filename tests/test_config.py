@@ -546,7 +546,8 @@ def _differences(a, b, prefix=""):
 @pytest.mark.parametrize("preset, task_keys", [
     # the Table 2 cure: the training scenes' object counts (evaluations stay on 3 blocks) and the LDM's height anchor
     # (no transition of that training reaches it: the zero-shot places onto taller columns do)
-    ("table2_block_stacking", {"env.train_object_counts", "model.height_anchor"}),
+    # and, for the ldm agent, V − 1.0·H in the greedy decisions (conf/experiment_agent/)
+    ("table2_block_stacking", {"env.train_object_counts", "model.height_anchor", "planner.greedy_uncertainty_penalty"}),
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
@@ -614,6 +615,11 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     # bin packing's greedy decisions score V − 1.0·H (the ldm agent's planner only); its exploring stays at V alone
     assert cfg.planner.greedy_uncertainty_penalty == (1.0 if agent == "ldm" else None)
     assert cfg.planner.uncertainty_penalty == 0.0
+    # and so do block stacking's Table 2 preset's (the learning-curve preset keeps V alone)
+    table2 = make_cfg("experiment=table2_block_stacking", f"agent={agent}", config_name="train_policy")
+    assert table2.planner.greedy_uncertainty_penalty == (1.0 if agent == "ldm" else None)
+    assert table2.planner.uncertainty_penalty == 0.0
+    assert make_cfg("experiment=curves_block_stacking", f"agent={agent}", config_name="train_policy").planner.greedy_uncertainty_penalty is None
     config_schema.validate_config(bottles, config_schema.TrainPolicyConfig)
     if agent != "rs":
         from ldm_rl.agents import build_agent
