@@ -587,6 +587,8 @@ class PlannerConfig:
     uncertainty_penalty: float = spec(0.0, ge=0.0, doc="λ of the score V − λ·H (H: the LDM's pixel entropy, nats)")
     greedy_uncertainty_penalty: Optional[float] = spec(None, ge=0.0,
                                                        doc="λ of the greedy decisions alone (null = uncertainty_penalty)")
+    uncertainty_penalty_on: str = spec("all", choices=("all", "places"),
+                                       doc="the primitives λ·H is charged on (places: a pick is scored by V alone)")
     empty_picks_last: bool = spec(False, doc="picks the LDM predicts to come up empty ranked below those predicted to hold")
     pick_outcome: str = spec("mode", choices=("mode", "expected"),
                              doc="a pick scored by V of the LDM's mode, or by its expected value over held and empty")
@@ -702,10 +704,11 @@ class TrainPolicyConfig(RunSettings):
     @staticmethod
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
-        for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "pick_outcome",
-                    "pick_rotations", "revisits_last", "q_blend"):  # the LDM agent's alone
+        for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "uncertainty_penalty_on",
+                    "pick_outcome", "pick_rotations", "revisits_last", "q_blend"):  # the LDM agent's alone
             value = node.planner.get(key)
-            if node.agent.name != "ldm" and value and value != "mode" and not (key == "pick_rotations" and value == 1):
+            if (node.agent.name != "ldm" and value and value not in ("mode", "all")
+                    and not (key == "pick_rotations" and value == 1)):
                 shown = "true" if value is True else value if isinstance(value, str) else _show(value)
                 found.append(f"{prefix}planner.{key}={shown} is set but agent={node.agent.name} does not plan with "
                              "the LDM's proposals: only agent=ldm uses it")
@@ -736,6 +739,8 @@ class PlannerOverrides:
     name: Optional[str] = spec(None, choices=(None, "diverse", "tree"), doc="the planner")
     num_candidates: Optional[int] = spec(None, ge=1, doc="Q's proposals scored by V (1 = Q's argmax alone)")
     uncertainty_penalty: Optional[float] = spec(None, ge=0.0, doc="λ of V − λ·H (these greedy decisions' λ)")
+    uncertainty_penalty_on: Optional[str] = spec(None, choices=(None, "all", "places"),
+                                                 doc="the primitives λ·H is charged on")
     empty_picks_last: Optional[bool] = spec(None, doc="predicted empty picks ranked below those predicted to hold")
     pick_outcome: Optional[str] = spec(None, choices=(None, "mode", "expected"),
                                        doc="a pick scored by V of the LDM's mode, or by its expected value")

@@ -175,7 +175,8 @@ def one_line_lists(text: str) -> str:
 # the settings of the greedy decisions that a checkpoint's own config and the overrides decide together, read from
 # the planner as built (a tree selected by override has its constructor's depth and branching, in no config;
 # uncertainty_penalty: the greedy decisions' λ)
-PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last", "pick_outcome", "pick_rotations", "revisits_last", "q_blend")
+PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last", "pick_outcome", "pick_rotations", "revisits_last", "q_blend",
+                       "uncertainty_penalty_on")
 PLAYED_TREE_KEYS = ("depth", "branching", "penalty_depth")
 
 

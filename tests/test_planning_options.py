@@ -152,6 +152,42 @@ def test_a_greedy_lambda_acts_in_the_greedy_decisions_alone(nets):
         LookaheadPlanner(q, dynamics, value, greedy_uncertainty_penalty=-1)
 
 
+def test_a_penalty_on_places_alone_leaves_the_picks_to_v(nets):
+    """uncertainty_penalty_on="places": with a huge λ the place row (row 1 holds) takes the most certain prediction,
+    the pick rows (0 and 2) decide as without λ; the written entropy is the LDM's at every candidate."""
+    q, dynamics, value = nets
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
+        certain = LookaheadPlanner(q, dynamics, value, uncertainty_penalty=1e6, **GREEDY)(batch())
+        places = LookaheadPlanner(q, dynamics, value, uncertainty_penalty=1e6, uncertainty_penalty_on="places",
+                                  **GREEDY)(batch())
+    picks, place = [0, 2], 1
+    assert torch.equal(places["action"][picks], plain["action"][picks])
+    assert not torch.equal(certain["action"][picks], plain["action"][picks])  # λ on picks would have moved them
+    assert torch.equal(places["action"][place], certain["action"][place])
+    torch.testing.assert_close(places["candidate_entropy"], certain["candidate_entropy"])
+    with pytest.raises(ValueError, match="uncertainty_penalty_on must be one of .*'all', 'places'.*got 'picks'"):
+        LookaheadPlanner(q, dynamics, value, uncertainty_penalty_on="picks")
+
+
+def test_the_tree_charges_a_places_only_penalty_on_places_alone(nets):
+    """A depth-2 tree from empty-handed states charging λ at the first step only (``penalty_depth=1``) decides, with
+    the penalty on places alone, as the tree without λ: every first action is a pick; with it on every primitive,
+    a huge λ moves a decision."""
+    q, dynamics, value = nets
+    td = batch(4)
+    td["holding"] = torch.zeros(4, 1, dtype=torch.bool)
+    td["in_hand"] = torch.zeros_like(td["in_hand"])
+    tree = dict(depth=2, branching=2, gamma=0.5, penalty_depth=1, **GREEDY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        plain = TreePlanner(q, dynamics, value, **tree)(td.clone())
+        places = TreePlanner(q, dynamics, value, uncertainty_penalty=1e6, uncertainty_penalty_on="places", **tree)(td.clone())
+        every = TreePlanner(q, dynamics, value, uncertainty_penalty=1e6, **tree)(td.clone())
+    assert torch.equal(places["action"], plain["action"])
+    torch.testing.assert_close(places["candidate_scores"], plain["candidate_scores"])
+    assert not torch.equal(every["candidate_scores"], plain["candidate_scores"])
+
+
 def test_q_blend_chooses_on_the_mix_of_v_and_q_of_each_candidate(nets):
     """q_blend w: the greedy choice is the argmax of (1 − w)·V(f(s, a)) + w·Q(s, a) over the same candidates, with Q
     read by the independent action_values path (and exp'd for a Q fitted on the log scale); w = 1 follows Q's ranking
@@ -545,7 +581,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     assert played_with(agent, cfg)["planner"] == {"name": "tree", "num_candidates": cfg["planner"]["num_candidates"],
                                                   "uncertainty_penalty": 0.0, "empty_picks_last": False,
                                                   "pick_outcome": "mode", "pick_rotations": 1, "revisits_last": False,
-                                                  "q_blend": 0.0, "depth": 2, "branching": 3, "penalty_depth": 2}
+                                                  "q_blend": 0.0, "uncertainty_penalty_on": "all", "depth": 2, "branching": 3,
+                                                  "penalty_depth": 2}
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -612,26 +649,29 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
     assert agent.loss.value_network.value_log_floor == 0.01
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false", "planner.name=diverse",
         "planner.num_candidates=1", "planner.uncertainty_penalty=0.0", "planner.empty_picks_last=true",
-        "planner.pick_outcome=expected", "planner.pick_rotations=4", "planner.q_blend=0.5", "failed_pick_memory=0",
+        "planner.pick_outcome=expected", "planner.pick_rotations=4", "planner.q_blend=0.5",
+        "planner.uncertainty_penalty_on=places", "failed_pick_memory=0",
         "q_pick_min_height=0.015", "hand_rule=removal",
         f"hydra.run.dir={tmp_path / 'eval'}")
     result = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert result["planner"] == {"name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True,
-                                 "pick_outcome": "expected", "pick_rotations": 4, "q_blend": 0.5}
+                                 "pick_outcome": "expected", "pick_rotations": 4, "q_blend": 0.5,
+                                 "uncertainty_penalty_on": "places"}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015 and result["hand_rule"] == "removal"
     # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
     # an overridden λ is these greedy decisions' λ
     assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "height_anchor": 0.08, "planner": {
         "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected",
-        "pick_rotations": 4, "revisits_last": True, "q_blend": 0.5}}
+        "pick_rotations": 4, "revisits_last": True, "q_blend": 0.5, "uncertainty_penalty_on": "places"}}
     run("evaluate.py", f"checkpoint={train / 'checkpoint.pt'}", "episodes=1", "progress=false",
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
     assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
     assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
         "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "pick_outcome": "mode",
-        "pick_rotations": 2, "revisits_last": True, "q_blend": 0.0, "depth": 2, "branching": 2, "penalty_depth": 2}
+        "pick_rotations": 2, "revisits_last": True, "q_blend": 0.0, "uncertainty_penalty_on": "all", "depth": 2,
+        "branching": 2, "penalty_depth": 2}
 
 
 def test_planner_overrides_on_a_checkpoint_of_another_agent_are_one_clear_error(tmp_path):

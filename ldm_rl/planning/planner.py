@@ -14,7 +14,8 @@ Option (not in the paper, off by default): ``uncertainty_penalty`` λ > 0 scores
 ``V(f(s, a)) − λ·H(s, a)``, ``H`` the LDM's mean pixel entropy inside B_a
 (:func:`~ldm_rl.world_model.core.pixel_entropy`, from the logits the lookahead computes anyway): among
 outcomes V rates alike, the planner prefers those its model is sure of (paper §5); ``greedy_uncertainty_penalty``
-sets another λ for the greedy decisions alone (explore where the model is unsure, act where it is sure).
+sets another λ for the greedy decisions alone (explore where the model is unsure, act where it is sure);
+``uncertainty_penalty_on="places"`` charges it on places alone (a pick is scored by V).
 ``empty_picks_last``: a pick the LDM predicts to leave the hand empty is ranked below every candidate of the same
 state predicted to hold (:func:`rank_empty_picks_last`). ``revisits_last``: a place whose predicted scene is one the
 episode already showed with an empty hand (``visited_scenes``, :class:`~ldm_rl.envs.memory.SceneMemory`) is ranked
@@ -50,6 +51,7 @@ __all__ = ["LookaheadPlanner", "rank_empty_picks_last", "rank_revisits_last"]
 
 PROPOSAL_MODES = ("softmax", "argmax")
 GREEDY_SCHEDULES = ("start", "current")
+PENALTY_PRIMITIVES = ("all", "places")  # uncertainty_penalty_on
 
 
 def rank_empty_picks_last(scores: torch.Tensor, holding: torch.Tensor, next_holding: torch.Tensor) -> torch.Tensor:
@@ -134,6 +136,8 @@ class LookaheadPlanner(StatePolicy):
         uncertainty_penalty: λ ≥ 0 (V units per nat): candidates are scored ``V − λ·H`` (0 = the paper).
         greedy_uncertainty_penalty: λ of the greedy decisions (under DETERMINISTIC) when it differs from the
             exploring one; ``None``: ``uncertainty_penalty`` for both.
+        uncertainty_penalty_on: the primitives λ·H is charged on: ``"all"``, or ``"places"`` (a pick is scored by V
+            alone, a place by ``V − λ·H``).
         empty_picks_last: picks the LDM predicts to leave the hand empty are scored ``-inf`` where another
             candidate is predicted to hold (:func:`rank_empty_picks_last`; False = the paper).
         pick_outcome: ``"mode"`` (the paper: V of the LDM's most likely outcome) or ``"expected"`` (a pick from an
@@ -174,6 +178,7 @@ class LookaheadPlanner(StatePolicy):
         write_action_value: bool = True,
         uncertainty_penalty: float = 0.0,
         greedy_uncertainty_penalty: float | None = None,
+        uncertainty_penalty_on: str = "all",
         empty_picks_last: bool = False,
         pick_outcome: str = "mode",
         pick_rotations: int = 1,
@@ -199,6 +204,10 @@ class LookaheadPlanner(StatePolicy):
         self.greedy_uncertainty_penalty = (None if greedy_uncertainty_penalty is None
                                            else float(greedy_uncertainty_penalty))
         self.with_entropy = bool(self.uncertainty_penalty or self.greedy_uncertainty_penalty)  # H computed, written
+        if uncertainty_penalty_on not in PENALTY_PRIMITIVES:
+            raise ValueError(f"uncertainty_penalty_on must be one of {PENALTY_PRIMITIVES} (the primitives λ·H is charged "
+                             f"on), got {uncertainty_penalty_on!r}")
+        self.uncertainty_penalty_on = uncertainty_penalty_on
         if not isinstance(empty_picks_last, bool):
             raise ValueError(f"empty_picks_last must be True or False, got {empty_picks_last!r}")
         self.empty_picks_last = empty_picks_last
@@ -240,6 +249,13 @@ class LookaheadPlanner(StatePolicy):
         if greedy and self.greedy_uncertainty_penalty is not None:
             return self.greedy_uncertainty_penalty
         return self.uncertainty_penalty
+
+    def charged_entropy(self, entropy: torch.Tensor, holding: torch.Tensor) -> torch.Tensor:
+        """The ``[B, N]`` entropies (nats) of candidates taken from states holding ``[B]`` or ``[B, 1]`` that λ is
+        charged on: all of them, or with ``uncertainty_penalty_on="places"`` those of the holding rows (0 elsewhere)."""
+        if self.uncertainty_penalty_on == "places":
+            return entropy * holding.reshape(-1, 1).to(entropy.dtype)
+        return entropy
 
     def hyperparameters(self, *, greedy: bool = False) -> dict[str, float]:
         """The schedules' values (τ, β, σ, σ_rot, τ_v) used when exploring (``greedy=False``, at :attr:`step`)
@@ -298,7 +314,7 @@ class LookaheadPlanner(StatePolicy):
                 result = _merge_results(predict(picks, candidates[picks]), picks, result, places)
         scores = result.values
         if penalty:
-            scores = scores - penalty * result.entropy
+            scores = scores - penalty * self.charged_entropy(result.entropy, holding)
         if self.empty_picks_last:
             scores = rank_empty_picks_last(scores, holding, result.next_holding)
         if revisits:
@@ -325,9 +341,10 @@ class LookaheadPlanner(StatePolicy):
             return scores.argmax(-1)
         return torch.multinomial(torch.softmax(scores / hp["tau_value"], -1), 1).squeeze(-1)
 
-    def backup(self, result, scores: torch.Tensor, hp: dict[str, float]) -> torch.Tensor:
-        """The ``[B, N]`` scores the choice is made on, from the one-step ``scores`` and the lookahead ``result``
-        (here: the one-step scores; planners that look further ahead override it)."""
+    def backup(self, result, scores: torch.Tensor, hp: dict[str, float], holding: torch.Tensor) -> torch.Tensor:
+        """The ``[B, N]`` scores the choice is made on, from the one-step ``scores`` and the lookahead ``result`` of
+        the states' candidates (``holding`` ``[B, 1]``: the states' hand; here: the one-step scores; planners that
+        look further ahead override it)."""
         return scores
 
     def decide(self, heightmap, in_hand, holding, *, greedy: bool, avoid=None, visited=None) -> dict[str, torch.Tensor]:
@@ -338,7 +355,7 @@ class LookaheadPlanner(StatePolicy):
             q_map, candidates = self.propose(heightmap, in_hand, holding, hp, greedy=greedy, avoid=avoid)
             scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
                                         swept=self.pick_rotations > 1, visited=visited, **self.lookahead_options)
-            scores = self.backup(result, scores, hp)
+            scores = self.backup(result, scores, hp, holding)
             if self.q_blend:
                 scores = self.blend_q(scores, q_map, candidates)
             choice = self.choose(scores, hp, greedy=greedy)

@@ -84,13 +84,15 @@ class TreePlanner(LookaheadPlanner):
         self.gamma, self.terminal_reward = float(gamma), float(terminal_reward)
         self.out_keys = [*self.out_keys, keys.CANDIDATE_SCORES]
 
-    def backup(self, result, scores: torch.Tensor, hp: dict[str, float]) -> torch.Tensor:
+    def backup(self, result, scores: torch.Tensor, hp: dict[str, float], holding: torch.Tensor) -> torch.Tensor:
         """The depth-``depth`` scores of the first candidates (``-inf`` where not expanded)."""
-        return scores if self.depth == 1 else self._expand(result, scores, self.depth - 1, hp)
+        return scores if self.depth == 1 else self._expand(result, scores, self.depth - 1, hp, holding)
 
-    def _expand(self, result, scores: torch.Tensor, remaining: int, hp: dict[str, float]) -> torch.Tensor:
+    def _expand(self, result, scores: torch.Tensor, remaining: int, hp: dict[str, float],
+                holding: torch.Tensor) -> torch.Tensor:
         """Back up the best K of ``scores`` ``[M, N]`` (their predicted states, rewards and entropies in the
-        lookahead ``result``) over ``remaining`` more primitives: ``[M, N]``, ``-inf`` where not expanded."""
+        lookahead ``result``; ``holding`` ``[M, 1]``, the hand of the states they were taken from) over ``remaining``
+        more primitives: ``[M, N]``, ``-inf`` where not expanded."""
         m, n = scores.shape
         k = self.branching
         best = scores.sort(dim=1, descending=True, stable=True).indices[:, :k]  # [M, K], first index on ties
@@ -106,7 +108,7 @@ class TreePlanner(LookaheadPlanner):
         node = reward + self.gamma * live * continuation
         penalty = self._penalty(hp, self.depth - remaining)  # these nodes are actions at that depth
         if penalty:
-            node = node - penalty * pick(result.entropy)
+            node = node - penalty * pick(self.charged_entropy(result.entropy, holding))
         return torch.full_like(scores, float("-inf")).scatter(1, best, node.view(m, k))
 
     def _penalty(self, hp: dict[str, float], depth: int) -> float:
@@ -122,5 +124,5 @@ class TreePlanner(LookaheadPlanner):
         scores, result = self.score(heightmap, in_hand, holding, candidates,
                                     self._penalty(hp, self.depth - remaining + 1), with_states=deeper, with_reward=deeper)
         if deeper:
-            scores = self._expand(result, scores, remaining - 1, hp)
+            scores = self._expand(result, scores, remaining - 1, hp, holding)
         return scores.amax(1)
