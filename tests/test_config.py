@@ -618,7 +618,7 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     assert cfg.planner.uncertainty_penalty == 0.0
     # and so do block stacking's Table 2 preset's (the learning-curve preset keeps V alone)
     table2 = make_cfg("experiment=table2_block_stacking", f"agent={agent}", config_name="train_policy")
-    assert table2.planner.greedy_uncertainty_penalty == (1.0 if agent == "ldm" else None)
+    assert table2.planner.greedy_uncertainty_penalty == (0.25 if agent == "ldm" else None)
     assert table2.planner.uncertainty_penalty == 0.0
     # charged on its places alone (a pick's entropy chose picks that come up empty on 4 and 5 blocks)
     assert table2.planner.uncertainty_penalty_on == ("places" if agent == "ldm" else "all")
