@@ -596,6 +596,7 @@ class PlannerConfig:
     revisits_last: bool = spec(False, doc="places the LDM predicts to recreate a scene seen with an empty hand this "
                                "episode ranked last (needs env.scene_memory > 0)")
     q_blend: float = spec(0.0, ge=0.0, le=1.0, doc="w: the choice made on (1 − w)·(V − λ·H) + w·Q(s, a) (0 = V alone)")
+    greedy_q_blend: Optional[float] = spec(None, ge=0.0, le=1.0, doc="w of the greedy decisions alone (null = q_blend)")
     # planner=tree only (conf/planner/tree.yaml sets them; null elsewhere)
     depth: Optional[int] = spec(None, ge=1, doc="primitives looked ahead (tree)")
     branching: Optional[int] = spec(None, ge=1, doc="candidates expanded per node (tree)")
@@ -705,7 +706,7 @@ class TrainPolicyConfig(RunSettings):
     def check(node: DictConfig, prefix: str) -> list[str]:
         found = TrainDynamicsConfig.check(node, prefix)
         for key in ("empty_picks_last", "uncertainty_penalty", "greedy_uncertainty_penalty", "uncertainty_penalty_on",
-                    "pick_outcome", "pick_rotations", "revisits_last", "q_blend"):  # the LDM agent's alone
+                    "pick_outcome", "pick_rotations", "revisits_last", "q_blend", "greedy_q_blend"):  # the LDM agent's alone
             value = node.planner.get(key)
             if (node.agent.name != "ldm" and value and value not in ("mode", "all")
                     and not (key == "pick_rotations" and value == 1)):

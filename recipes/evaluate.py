@@ -80,8 +80,8 @@ def evaluate(cfg: DictConfig) -> dict:
     save_resolved_config(cfg, hydra_output_dir())
     path = hydra.utils.to_absolute_path(str(cfg.checkpoint))
     planner = {key: value for key, value in cfg.planner.items() if value is not None}
-    # these decisions are all greedy: an overridden λ is theirs, over a greedy λ the checkpoint's planner may hold
-    greedy = {"greedy_uncertainty_penalty": planner["uncertainty_penalty"]} if "uncertainty_penalty" in planner else {}
+    # these decisions are all greedy: an overridden λ or w is theirs, over a greedy one the checkpoint's planner may hold
+    greedy = {f"greedy_{key}": planner[key] for key in ("uncertainty_penalty", "q_blend") if key in planner}
     agent, train_cfg = load_agent(path, preset=cfg.preset, device=resolve_device(cfg.device),
                                   planner={**planner, **greedy},
                                   q_pick_min_height=cfg.q_pick_min_height, hand_rule=cfg.hand_rule,
@@ -174,8 +174,8 @@ def one_line_lists(text: str) -> str:
 
 # the settings of the greedy decisions that a checkpoint's own config and the overrides decide together, read from
 # the planner as built (a tree selected by override has its constructor's depth and branching, in no config;
-# uncertainty_penalty: the greedy decisions' λ)
-PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last", "pick_outcome", "pick_rotations", "revisits_last", "q_blend",
+# uncertainty_penalty, q_blend: the greedy decisions' λ and w)
+PLAYED_PLANNER_KEYS = ("num_candidates", "empty_picks_last", "pick_outcome", "pick_rotations", "revisits_last",
                        "uncertainty_penalty_on")
 PLAYED_TREE_KEYS = ("depth", "branching", "penalty_depth")
 
@@ -192,7 +192,7 @@ def played_with(agent, cfg: dict) -> dict:
         name = cfg["planner"].get("name") or "diverse"
         keys = PLAYED_PLANNER_KEYS + (PLAYED_TREE_KEYS if name == "tree" else ())
         played["planner"] = {"name": name, **{key: getattr(planner, key) for key in keys},
-                             "uncertainty_penalty": planner.penalty(greedy=True)}
+                             "uncertainty_penalty": planner.penalty(greedy=True), "q_blend": planner.blend_weight(greedy=True)}
     model = world_model(agent)
     if model is not None:
         played["hand_rule"] = model.hand_rule.kind

@@ -218,6 +218,30 @@ def test_q_blend_chooses_on_the_mix_of_v_and_q_of_each_candidate(nets):
         LookaheadPlanner(q, dynamics, value, q_log_floor=0)
 
 
+def test_a_greedy_q_blend_acts_in_the_greedy_decisions_alone(nets):
+    """greedy_q_blend: the greedy decisions are those of a planner with that w, the exploring draws those of the
+    exploring w (the same random stream); None takes q_blend for both."""
+    q, dynamics, value = nets
+    split = LookaheadPlanner(q, dynamics, value, q_blend=0.0, greedy_q_blend=1.0, **GREEDY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        greedy = split(batch())
+        voted = LookaheadPlanner(q, dynamics, value, q_blend=1.0, **GREEDY)(batch())
+        plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
+    assert torch.equal(greedy["action"], voted["action"])
+    assert not torch.equal(greedy["action"], plain["action"])  # the greedy w did change a decision
+    with set_exploration_type(ExplorationType.RANDOM):
+        torch.manual_seed(5)
+        exploring = split(batch())
+        torch.manual_seed(5)
+        exploring_plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
+    assert torch.equal(exploring["action"], exploring_plain["action"])
+    assert split.blend_weight(greedy=False) == 0.0 and split.blend_weight(greedy=True) == 1.0
+    assert LookaheadPlanner(q, dynamics, value, q_blend=0.3).blend_weight(greedy=True) == 0.3  # None: the same
+    for bad in (-0.5, 2, False):
+        with pytest.raises(ValueError, match=f"greedy_q_blend must be a number in \\[0, 1\\] .* or None, got {bad!r}"):
+            LookaheadPlanner(q, dynamics, value, greedy_q_blend=bad)
+
+
 def test_q_blend_keeps_ranked_last_candidates_last_and_drops_those_off_q_s_frame(nets):
     q, dynamics, value = nets
     planner = LookaheadPlanner(q, dynamics, value, q_blend=1.0)
@@ -601,6 +625,8 @@ def test_a_one_step_runs_config_planned_with_the_tree_takes_the_trees_defaults()
     (("planner.pick_rotations=3",), r"planner.pick_rotations=3 must divide env.num_rotations=8"),
     (("agent=fcdqn", "planner.pick_rotations=2"), "planner.pick_rotations=2 is set but agent=fcdqn .* only agent=ldm"),
     (("agent=dynaq", "planner.q_blend=0.5"), "planner.q_blend=0.5 is set but agent=dynaq .* only agent=ldm"),
+    (("agent=fcdqn", "planner.greedy_q_blend=0.5"), "planner.greedy_q_blend=0.5 is set but agent=fcdqn .* only agent=ldm"),
+    (("planner.greedy_q_blend=-1",), "planner.greedy_q_blend=-1"),
     (("planner.q_blend=1.5",), "planner.q_blend=1.5"),
     (("planner=tree", "planner.penalty_depth=3"), r"planner.penalty_depth=3 is out of range: must be <= planner.depth \(2\)"),
     (("planner.penalty_depth=1",), r"planner.penalty_depth=1 is read by planner=tree only"),
@@ -639,7 +665,7 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
         "planner.pick_rotations=2", "agent.target_uncertainty_penalty=0.1", "env.failed_pick_memory=4",
         "planner.revisits_last=true", "env.scene_memory=4", "env.train_object_counts=[2,3]", "agent.q_proposal_fit=1",
         "model.height_anchor=0.08", "agent.expert_margin_weight=0.1", "agent.value_log_floor=0.01",
-        "agent.value_margin_weight=0.5",
+        "agent.value_margin_weight=0.5", "planner.greedy_q_blend=0.25",
         f"hydra.run.dir={train}")
     final = json.loads((train / "final_metrics.json").read_text())
     assert final["agent"] == "ldm" and final["episodes"] >= 2
@@ -659,8 +685,8 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
                                  "uncertainty_penalty_on": "places"}
     assert result["episodes"] == 1
     assert result["failed_pick_memory"] == 0 and result["q_pick_min_height"] == 0.015 and result["hand_rule"] == "removal"
-    # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3):
-    # an overridden λ is these greedy decisions' λ
+    # what played: the overrides over the checkpoint's own settings (trained with the tree, λ = 0.1, greedy 0.3, Q's
+    # greedy vote 0.25): an overridden λ or w is these greedy decisions' λ or w
     assert result["played_with"] == {"q_pick_min_height": 0.015, "hand_rule": "removal", "height_anchor": 0.08, "planner": {
         "name": "diverse", "num_candidates": 1, "uncertainty_penalty": 0.0, "empty_picks_last": True, "pick_outcome": "expected",
         "pick_rotations": 4, "revisits_last": True, "q_blend": 0.5, "uncertainty_penalty_on": "places"}}
@@ -668,9 +694,9 @@ def test_smoke_run_with_every_option_then_evaluate_its_weights_with_the_tree_pla
         f"hydra.run.dir={tmp_path / 'eval_own'}")
     own = json.loads((tmp_path / "eval_own" / "evaluation.json").read_text())
     assert "planner" not in own and "hand_rule" not in own and own["played_with"]["hand_rule"] == "occupancy"
-    assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ
+    assert own["played_with"]["planner"] == {  # the checkpoint's greedy λ and w
         "name": "tree", "num_candidates": 3, "uncertainty_penalty": 0.3, "empty_picks_last": True, "pick_outcome": "mode",
-        "pick_rotations": 2, "revisits_last": True, "q_blend": 0.0, "uncertainty_penalty_on": "all", "depth": 2,
+        "pick_rotations": 2, "revisits_last": True, "q_blend": 0.25, "uncertainty_penalty_on": "all", "depth": 2,
         "branching": 2, "penalty_depth": 2}
 
 

@@ -26,7 +26,8 @@ proposal is also scored at K − 1 more rotations of its pixel, evenly spaced ov
 (:func:`~ldm_rl.planning.sampling.sweep_rotations`), so the LDM — not Q alone — chooses how the fingers close on
 what Q points at (N·K candidates; a place decision's N proposals are scored once and repeated K times).
 ``q_blend`` w > 0: the choice is made on ``(1 − w)·score + w·Q(s, a)``, the model-based estimate of each candidate's
-return averaged with Q's model-free estimate of the same return (:meth:`LookaheadPlanner.blend_q`).
+return averaged with Q's model-free estimate of the same return (:meth:`LookaheadPlanner.blend_q`); ``greedy_q_blend``
+sets another w for the greedy decisions alone.
 
 All networks run in eval mode without gradients; their train/eval flags are restored. τ, β, σ, σ_rot and
 τ_v are floats or schedules ``step -> float`` (:mod:`ldm_rl.schedules`) evaluated at ``planner.step``,
@@ -148,6 +149,8 @@ class LookaheadPlanner(StatePolicy):
         q_blend: w in [0, 1]: the choice is made on ``(1 − w)·score + w·Q(s, a)`` (:meth:`blend_q`), the model-based
             estimate of each candidate's return averaged with Q's model-free one (0 = the paper; 1 = Q's ranking of
             its own proposals, which keep their ``-inf`` marks).
+        greedy_q_blend: w of the greedy decisions (under DETERMINISTIC) when it differs from the exploring one;
+            ``None``: ``q_blend`` for both.
         q_log_floor: None (Q is fitted on returns) or ε: Q is fitted on ``log(max(y, ε))`` (the agent's
             ``q_log_floor``); ``q_blend`` reads it back as ``exp(Q)``.
 
@@ -184,16 +187,22 @@ class LookaheadPlanner(StatePolicy):
         pick_rotations: int = 1,
         revisits_last: bool = False,
         q_blend: float = 0.0,
+        greedy_q_blend: float | None = None,
         q_log_floor: float | None = None,
     ) -> None:
         super().__init__(tau=tau, beta=beta, sigma=sigma, sigma_rot=sigma_rot, tau_value=tau_value)
-        if isinstance(q_blend, bool) or not isinstance(q_blend, (int, float)) or not 0 <= q_blend <= 1:
-            raise ValueError(f"q_blend must be a number in [0, 1] (the weight of Q in the decision score), got {q_blend!r}")
+        for name, value, allowed in (("q_blend", q_blend, ""), ("greedy_q_blend", greedy_q_blend, " or None")):
+            if allowed and value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+                raise ValueError(f"{name} must be a number in [0, 1] (the weight of Q in the decision score){allowed}, "
+                                 f"got {value!r}")
         if q_log_floor is not None and (isinstance(q_log_floor, bool) or not isinstance(q_log_floor, (int, float))
                                         or not 0 < q_log_floor < 1):
             raise ValueError(f"q_log_floor must be None (Q on the return scale) or a number in (0, 1) (Q fitted as "
                              f"log(max(y, q_log_floor))), got {q_log_floor!r}")
         self.q_blend, self.q_log_floor = float(q_blend), q_log_floor
+        self.greedy_q_blend = None if greedy_q_blend is None else float(greedy_q_blend)
         for name, value, allowed in (("uncertainty_penalty", uncertainty_penalty, ""),
                                      ("greedy_uncertainty_penalty", greedy_uncertainty_penalty, " or None")):
             if allowed and value is None:
@@ -249,6 +258,12 @@ class LookaheadPlanner(StatePolicy):
         if greedy and self.greedy_uncertainty_penalty is not None:
             return self.greedy_uncertainty_penalty
         return self.uncertainty_penalty
+
+    def blend_weight(self, *, greedy: bool) -> float:
+        """w of Q in the exploring (``greedy=False``) or the greedy decisions."""
+        if greedy and self.greedy_q_blend is not None:
+            return self.greedy_q_blend
+        return self.q_blend
 
     def charged_entropy(self, entropy: torch.Tensor, holding: torch.Tensor) -> torch.Tensor:
         """The ``[B, N]`` entropies (nats) of candidates taken from states holding ``[B]`` or ``[B, 1]`` that λ is
@@ -321,8 +336,9 @@ class LookaheadPlanner(StatePolicy):
             scores = rank_revisits_last(scores, heightmap, holding, result.next_heightmap, visited)
         return scores, result
 
-    def blend_q(self, scores: torch.Tensor, q_map: torch.Tensor, candidates: torch.Tensor) -> torch.Tensor:
-        """``(1 − w)·scores + w·Q(s, a)`` ``[B, N]``, w = ``q_blend``: each candidate's score (``V(f(s, a))`` less
+    def blend_q(self, scores: torch.Tensor, q_map: torch.Tensor, candidates: torch.Tensor,
+                weight: float | None = None) -> torch.Tensor:
+        """``(1 − w)·scores + w·Q(s, a)`` ``[B, N]``, w = ``weight`` (``None``: ``q_blend``): each candidate's score (``V(f(s, a))`` less
         any penalty, ``[B, N]``) averaged with Q's own estimate of the same return, read off ``q_map``
         ``[B, R, H, W]`` at ``candidates`` ``[B, N, 3]`` (row, col, rotation) and brought to the return scale
         (``exp`` for a Q fitted on ``log(max(y, q_log_floor))``). A ``-inf`` score (a ranked-last candidate) stays
@@ -331,7 +347,7 @@ class LookaheadPlanner(StatePolicy):
         q = q_map.flatten(1).gather(1, flat).to(scores.dtype)
         if self.q_log_floor is not None:
             q = q.exp()
-        w = self.q_blend
+        w = self.q_blend if weight is None else float(weight)
         return torch.where(torch.isneginf(scores), scores, (1 - w) * scores + w * q)
 
     @staticmethod
@@ -356,8 +372,9 @@ class LookaheadPlanner(StatePolicy):
             scores, result = self.score(heightmap, in_hand, holding, candidates, hp["uncertainty_penalty"],
                                         swept=self.pick_rotations > 1, visited=visited, **self.lookahead_options)
             scores = self.backup(result, scores, hp, holding)
-            if self.q_blend:
-                scores = self.blend_q(scores, q_map, candidates)
+            weight = self.blend_weight(greedy=greedy)
+            if weight:
+                scores = self.blend_q(scores, q_map, candidates, weight)
             choice = self.choose(scores, hp, greedy=greedy)
             action = candidates.gather(1, choice.view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
             state_value = self.value_network(heightmap, in_hand)
