@@ -546,9 +546,9 @@ def _differences(a, b, prefix=""):
 @pytest.mark.parametrize("preset, task_keys", [
     # the Table 2 cure: the training scenes' object counts (evaluations stay on 3 blocks) and the LDM's height anchor
     # (no transition of that training reaches it: the zero-shot places onto taller columns do)
-    # and, for the ldm agent, V − 1.0·H in the greedy decisions' places (conf/experiment_agent/)
+    # and, for the ldm agent, V − 0.25·H in the greedy decisions' places and Q's vote in them (conf/experiment_agent/)
     ("table2_block_stacking", {"env.train_object_counts", "model.height_anchor", "planner.greedy_uncertainty_penalty",
-                               "planner.uncertainty_penalty_on"}),
+                               "planner.uncertainty_penalty_on", "planner.greedy_q_blend"}),
     # each task's own settings and budget, as its preset and docs/policy.md ("Reproducing the comparison") say
     # and, for the ldm agent, V fitted on shifted states (conf/experiment_agent/)
     ("curves_house_building", {"agent.gamma", "agent.lr.value", "agent.value_augmentation"}),
@@ -620,6 +620,8 @@ def test_a_presets_settings_for_one_agent_reach_that_agent_only(agent, fit, floo
     table2 = make_cfg("experiment=table2_block_stacking", f"agent={agent}", config_name="train_policy")
     assert table2.planner.greedy_uncertainty_penalty == (0.25 if agent == "ldm" else None)
     assert table2.planner.uncertainty_penalty == 0.0
+    # and Q's vote in those greedy decisions alone (w = 0.25; exploring keeps V − λ·H alone)
+    assert table2.planner.greedy_q_blend == (0.25 if agent == "ldm" else None) and table2.planner.q_blend == 0.0
     # charged on its places alone (a pick's entropy chose picks that come up empty on 4 and 5 blocks)
     assert table2.planner.uncertainty_penalty_on == ("places" if agent == "ldm" else "all")
     assert bottles.planner.uncertainty_penalty_on == cfg.planner.uncertainty_penalty_on == "all"
