@@ -127,25 +127,34 @@ def test_the_uncertainty_penalty_scores_v_minus_lambda_entropy(nets):
         LookaheadPlanner(q, dynamics, value, uncertainty_penalty=-0.1)
 
 
-def test_a_greedy_lambda_acts_in_the_greedy_decisions_alone(nets):
-    """greedy_uncertainty_penalty: the greedy decisions are those of a planner with that λ, the exploring draws
-    those of the exploring λ (the same random stream)."""
+def _acts_in_the_greedy_decisions_alone(nets, split_kwargs: dict, greedy_kwargs: dict):
+    """A planner built with ``split_kwargs`` decides greedily as one built with ``greedy_kwargs`` (and not as the
+    plain planner) and explores as the plain planner does (the same random stream); returns it and its greedy output."""
     q, dynamics, value = nets
-    split = LookaheadPlanner(q, dynamics, value, uncertainty_penalty=0.0, greedy_uncertainty_penalty=1e6, **GREEDY)
+    split = LookaheadPlanner(q, dynamics, value, **split_kwargs, **GREEDY)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         greedy = split(batch())
-        certain = LookaheadPlanner(q, dynamics, value, uncertainty_penalty=1e6, **GREEDY)(batch())
+        alike = LookaheadPlanner(q, dynamics, value, **greedy_kwargs, **GREEDY)(batch())
         plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
-    assert torch.equal(greedy["action"], certain["action"])
-    assert not torch.equal(greedy["action"], plain["action"])  # the greedy λ did change a decision
-    assert torch.equal(greedy["action"], greedy["candidate_actions"][torch.arange(3),
-                                                                   greedy["candidate_entropy"].argmin(-1)])
+    assert torch.equal(greedy["action"], alike["action"])
+    assert not torch.equal(greedy["action"], plain["action"])  # the greedy setting did change a decision
     with set_exploration_type(ExplorationType.RANDOM):
         torch.manual_seed(5)
         exploring = split(batch())
         torch.manual_seed(5)
         exploring_plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
     assert torch.equal(exploring["action"], exploring_plain["action"])
+    return split, greedy
+
+
+def test_a_greedy_lambda_acts_in_the_greedy_decisions_alone(nets):
+    """greedy_uncertainty_penalty: the greedy decisions are those of a planner with that λ, the exploring draws
+    those of the exploring λ (the same random stream)."""
+    q, dynamics, value = nets
+    split, greedy = _acts_in_the_greedy_decisions_alone(
+        nets, {"uncertainty_penalty": 0.0, "greedy_uncertainty_penalty": 1e6}, {"uncertainty_penalty": 1e6})
+    assert torch.equal(greedy["action"], greedy["candidate_actions"][torch.arange(3),
+                                                                   greedy["candidate_entropy"].argmin(-1)])
     assert split.penalty(greedy=False) == 0.0 and split.penalty(greedy=True) == 1e6
     assert LookaheadPlanner(q, dynamics, value, uncertainty_penalty=0.2).penalty(greedy=True) == 0.2  # None: the same
     with pytest.raises(ValueError, match="greedy_uncertainty_penalty must be a number >= 0 .* or None, got -1"):
@@ -222,19 +231,7 @@ def test_a_greedy_q_blend_acts_in_the_greedy_decisions_alone(nets):
     """greedy_q_blend: the greedy decisions are those of a planner with that w, the exploring draws those of the
     exploring w (the same random stream); None takes q_blend for both."""
     q, dynamics, value = nets
-    split = LookaheadPlanner(q, dynamics, value, q_blend=0.0, greedy_q_blend=1.0, **GREEDY)
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        greedy = split(batch())
-        voted = LookaheadPlanner(q, dynamics, value, q_blend=1.0, **GREEDY)(batch())
-        plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
-    assert torch.equal(greedy["action"], voted["action"])
-    assert not torch.equal(greedy["action"], plain["action"])  # the greedy w did change a decision
-    with set_exploration_type(ExplorationType.RANDOM):
-        torch.manual_seed(5)
-        exploring = split(batch())
-        torch.manual_seed(5)
-        exploring_plain = LookaheadPlanner(q, dynamics, value, **GREEDY)(batch())
-    assert torch.equal(exploring["action"], exploring_plain["action"])
+    split, _ = _acts_in_the_greedy_decisions_alone(nets, {"q_blend": 0.0, "greedy_q_blend": 1.0}, {"q_blend": 1.0})
     assert split.blend_weight(greedy=False) == 0.0 and split.blend_weight(greedy=True) == 1.0
     assert LookaheadPlanner(q, dynamics, value, q_blend=0.3).blend_weight(greedy=True) == 0.3  # None: the same
     for bad in (-0.5, 2, False):
