@@ -129,9 +129,10 @@ def place_rows(snapshots: list[dict], tilt: float, yaw: float = 10.0) -> list[di
     return rows
 
 
-def recorder(policy, task):
-    """``policy`` wrapped as the TensorDict module ``env.rollout`` calls, snapshotting the task's blocks before
-    each decision into its ``snapshots`` (the caller clears them per episode)."""
+def recorder(policy, take):
+    """``policy`` wrapped as the TensorDict module ``env.rollout`` calls, appending ``take(step)`` (a snapshot of
+    the scene, ``step`` the decision's index) to its ``snapshots`` before each decision (the caller clears them per
+    episode)."""
     from tensordict.nn import TensorDictModuleBase
 
     class Recorder(TensorDictModuleBase):
@@ -142,7 +143,7 @@ def recorder(policy, task):
             self.snapshots = []
 
         def forward(self, tensordict):
-            self.snapshots.append(snapshot(task, len(self.snapshots)))
+            self.snapshots.append(take(len(self.snapshots)))
             return policy(tensordict)
 
     return Recorder()
@@ -295,7 +296,7 @@ def play(env, task, policy, episodes: int, seed: int, tilt: float, on_episode=No
     from ldm_rl.evaluation import evaluate_policy
     from ldm_rl.seeds import held_out_scenes
 
-    module, places, tops = recorder(policy, task), [], []
+    module, places, tops = recorder(policy, lambda step: snapshot(task, step)), [], []
 
     def record(index, rollout):
         places.extend(place_rows(module.snapshots + [snapshot(task, len(module.snapshots))], tilt))
@@ -358,16 +359,22 @@ def parse_args(argv=None):
     if not 0 < args.tilt < 90:
         parser.error(f"--tilt must be in (0, 90) degrees, got {args.tilt}")
     for name in ("planner", "place_planner"):
-        settings = {}
-        for item in getattr(args, name):
-            key, sep, value = item.partition("=")
-            if not sep or not key:
-                parser.error(f"--{name.replace('_', '-')} takes KEY=VALUE items, got {item!r}")
-            settings[key] = _number(value)
-        setattr(args, name, settings)
+        setattr(args, name, key_values(parser, f"--{name.replace('_', '-')}", getattr(args, name)))
     if args.place_planner and args.expert_does:
         parser.error(f"--place-planner {args.place_planner} sets the places' planner: leave out --expert-does")
     return args
+
+
+def key_values(parser, option: str, items: list[str]) -> dict:
+    """``KEY=VALUE`` items as a dict, each value read as an int, a float, true / false or else a string; an item
+    without ``=`` stops the parser in one line naming ``option`` and the item."""
+    settings = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            parser.error(f"{option} takes KEY=VALUE items, got {item!r}")
+        settings[key] = _number(value)
+    return settings
 
 
 def _number(text: str):

@@ -17,9 +17,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/place_outcomes.py
+from place_outcomes import key_values, recorder  # noqa: E402
 
 CUBE = 0.04  # m: the stacking cubes' side
 LEVEL_SLACK = 0.015  # m: a cube rests on another when its centre is one side higher, within this
@@ -72,24 +76,6 @@ def place_rows(snapshots: list[dict]) -> list[dict]:
     return rows
 
 
-def recorder(policy, task):
-    """``policy`` as the TensorDict module ``env.rollout`` calls, snapshotting the cubes before each decision."""
-    from tensordict.nn import TensorDictModuleBase
-
-    class Recorder(TensorDictModuleBase):
-        in_keys, out_keys = [], []
-
-        def __init__(self):
-            super().__init__()
-            self.snapshots = []
-
-        def forward(self, tensordict):
-            self.snapshots.append(snapshot(task))
-            return policy(tensordict)
-
-    return Recorder()
-
-
 def snapshot(task) -> dict:
     """The held cube's index among the task's objects (or None) and every cube's centre, ``[N, 3]`` metres."""
     bodies = [obj.body for obj in task.sim.objects]
@@ -102,7 +88,7 @@ def play(env, task, policy, episodes: int, seed: int) -> list[dict]:
     from ldm_rl.evaluation import episode_succeeded, evaluate_policy
     from ldm_rl.seeds import held_out_scenes
 
-    module, played = recorder(policy, task), []
+    module, played = recorder(policy, lambda step: snapshot(task)), []
 
     def record(index, rollout):
         played.append({"success": bool(episode_succeeded(rollout)),
@@ -143,23 +129,8 @@ def parse_args(argv=None):
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.objects is not None and args.objects < 2:
         parser.error(f"--objects must be >= 2 (a tower), got {args.objects}")
-    settings = {}
-    for item in args.planner:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            parser.error(f"--planner takes KEY=VALUE items, got {item!r}")
-        settings[key] = _number(value)
-    args.planner = settings
+    args.planner = key_values(parser, "--planner", args.planner)
     return args
-
-
-def _number(text: str):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False}.get(text.lower(), text)
 
 
 def greedy_settings(settings: dict) -> dict:
